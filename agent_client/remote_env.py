@@ -1,0 +1,162 @@
+"""`RemoteEnv`: a Gymnasium environment whose simulator runs in another process.
+
+Observations are the flat float32 vector announced by the server's schema (the named
+`protocol.Observation` is in ``info["observation"]``); actions are a dict of a longitudinal
+acceleration (m/s^2, within the server's bounds) and a lane change (-1 right, 0 keep, +1 left).
+The reward is computed here, on the learner's side, from the observations alone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import zmq
+from gymnasium import spaces
+
+from agent_client.connection import Connection, MalformedReply, ServerTimeout
+from protocol.messages import Close, Observation, OptionValue, Reset, Step, Welcome
+from protocol.schema import Flattener
+from protocol.transport import DEFAULT_ADDRESS
+
+RewardFn = Callable[[Observation | None, Observation, float], float]
+
+ActionDict = Mapping[str, Any]
+
+
+class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
+    """One ego vehicle in a remote simulator, behind the bridge protocol."""
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(
+        self,
+        address: str = DEFAULT_ADDRESS,
+        scenario: str = "cf",
+        *,
+        reward: str | RewardFn = "safe",
+        timeout_s: float = 10.0,
+        reset_timeout_s: float = 120.0,
+        **options: OptionValue,
+    ) -> None:
+        """Connect and shake hands; `options` are scenario options sent with every reset."""
+        self.address = address
+        self.scenario = scenario
+        self.options = dict(options)
+        self.reset_timeout_s = reset_timeout_s
+        self.reward_fn = _resolve_reward(reward)
+        self._connection = Connection(address, timeout_s)
+        try:
+            self.welcome: Welcome = self._connection.hello(timeout_s)
+            self.scenario_options = self._check_scenario()
+        except Exception:
+            self.close()  # free the server for the next client, then report
+            raise
+        self.flatten = Flattener(self.welcome.observation_fields)
+        schema = self.welcome.action
+        self.action_space = spaces.Dict(
+            {
+                "acceleration": spaces.Box(
+                    schema.acceleration_min, schema.acceleration_max, (1,), np.float32
+                ),
+                "lane_change": spaces.Discrete(3, start=-1),
+            }
+        )
+        self.observation_space = spaces.Box(-np.inf, np.inf, (len(self.flatten.names),), np.float32)
+        self._seq = 0
+        self._last: Observation | None = None
+        self._done = True
+
+    # ----------------------------------------------------------------------- gymnasium API
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
+        request = Reset(self.scenario, episode_seed, {**self.options, **(options or {})})
+        obs = self._observation(self._connection.request(request, self.reset_timeout_s))
+        self._seq, self._last, self._done = 0, obs, False
+        return self._vector(obs), {"observation": obs, "seed": episode_seed}
+
+    def step(self, action: ActionDict) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._done:
+            raise gym.error.ResetNeeded("the episode has ended (or never started): call reset()")
+        acceleration, lane_change = _parse_action(action)
+        self._seq += 1
+        obs = self._observation(
+            self._connection.request(Step(self._seq, acceleration, lane_change))
+        )
+        prev, self._last = self._last, obs
+        elapsed = obs.time - prev.time if prev is not None else 0.0
+        reward = float(self.reward_fn(prev, obs, elapsed))
+        self._done = obs.terminated or obs.truncated
+        return self._vector(obs), reward, obs.terminated, obs.truncated, {"observation": obs}
+
+    def close(self) -> None:
+        """Say goodbye (best effort, short timeout) and release the socket."""
+        if getattr(self, "_connection", None) is None:
+            return
+        # The server may be gone or broken: closing our side is all that is left then.
+        with contextlib.suppress(ServerTimeout, MalformedReply, zmq.ZMQError):
+            self._connection.exchange(Close(), timeout_s=1.0)
+        self._connection.close()
+        self._connection = None  # type: ignore[assignment]
+
+    # ----------------------------------------------------------------------- helpers
+
+    def _check_scenario(self) -> dict[str, OptionValue]:
+        """The scenario's full options; refuses unknown scenarios and options early."""
+        offered = {s.name: s for s in self.welcome.scenarios}
+        if self.scenario not in offered:
+            raise ValueError(
+                f"server at {self.address} offers no scenario {self.scenario!r}; "
+                f"offered: {', '.join(offered)}"
+            )
+        known = offered[self.scenario].options
+        unknown = set(self.options) - set(known)
+        if unknown:
+            raise ValueError(
+                f"scenario {self.scenario} has no options {sorted(unknown)}; "
+                f"known: {', '.join(known)}"
+            )
+        return {**known, **self.options}
+
+    @property
+    def last_observation(self) -> Observation | None:
+        """The named observation of the last reset or step."""
+        return self._last
+
+    def _vector(self, obs: Observation) -> np.ndarray:
+        return np.asarray(self.flatten(obs), dtype=np.float32)
+
+    @staticmethod
+    def _observation(reply: object) -> Observation:
+        if not isinstance(reply, Observation):
+            raise MalformedReply(f"expected an observation, got {type(reply).__name__}")
+        return reply
+
+
+def _parse_action(action: ActionDict | float) -> tuple[float, int]:
+    """Accept ``{"acceleration": [a], "lane_change": k}`` (or a bare acceleration)."""
+    if isinstance(action, Mapping):
+        acceleration = float(np.asarray(action["acceleration"], dtype=np.float64).reshape(-1)[0])
+        lane_change = int(action.get("lane_change", 0))
+    else:
+        acceleration, lane_change = float(np.asarray(action).reshape(-1)[0]), 0
+    if not np.isfinite(acceleration):
+        raise ValueError(f"acceleration must be finite, got {acceleration}")
+    if lane_change not in (-1, 0, 1):
+        raise ValueError(f"lane_change must be -1, 0 or 1, got {lane_change}")
+    return acceleration, lane_change
+
+
+def _resolve_reward(reward: str | RewardFn) -> RewardFn:
+    if callable(reward):
+        return reward
+    from agent_client.rewards import make_reward
+
+    return make_reward(reward)

@@ -1,0 +1,279 @@
+"""The one module that touches msgpack: messages to frames and back, with validation.
+
+Decoding never trusts the peer: it checks the frame size, the msgpack structure, every field's
+type and that every number is finite, and raises `ProtocolError` with a distinct `ErrorCode` for
+each kind of fault. Map keys the receiver does not know are ignored (forward compatibility within
+a major version); missing keys fall back to the field's default or are an error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Callable
+from functools import cache
+from typing import Any
+
+import msgpack
+
+from protocol.errors import ErrorCode, ProtocolError
+from protocol.messages import REPLY_TYPES, REQUEST_TYPES, Message
+
+DEFAULT_MAX_FRAME_BYTES = 64 * 1024
+"""Largest frame a peer must accept; servers announce theirs in `Welcome.max_frame_bytes`."""
+
+_MAX_STRING = 4096
+_MAX_ITEMS = 1024
+_INT64 = 2**63
+
+Converter = Callable[[Any, str], Any]
+
+_REQUESTS = {cls.TYPE: cls for cls in REQUEST_TYPES}
+_REPLIES = {cls.TYPE: cls for cls in REPLY_TYPES}
+
+
+def encode(message: Message) -> bytes:
+    """Serialise a message to one msgpack frame (a map whose ``type`` key names the message)."""
+    wire = {"type": message.TYPE}
+    wire.update(_to_wire(message))
+    return msgpack.packb(wire, use_bin_type=True)
+
+
+def decode_request(frame: bytes, max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES) -> Message:
+    """Parse a frame sent by a client; raises `ProtocolError` on anything malformed."""
+    return _decode(frame, _REQUESTS, max_frame_bytes)
+
+
+def decode_reply(frame: bytes, max_frame_bytes: int = 1024 * 1024) -> Message:
+    """Parse a frame sent by a server; raises `ProtocolError` on anything malformed."""
+    return _decode(frame, _REPLIES, max_frame_bytes)
+
+
+def _decode(frame: bytes, allowed: dict[str, type], max_frame_bytes: int) -> Message:
+    if len(frame) > max_frame_bytes:
+        raise ProtocolError(
+            ErrorCode.FRAME_TOO_LARGE,
+            f"frame of {len(frame)} bytes exceeds the limit of {max_frame_bytes} bytes",
+        )
+    try:
+        raw = msgpack.unpackb(frame, raw=False, strict_map_key=True, use_list=True)
+    except Exception as exc:  # msgpack raises several unrelated types on hostile input
+        raise ProtocolError(
+            ErrorCode.DECODE_ERROR, f"frame is not valid msgpack: {type(exc).__name__}: {exc}"
+        ) from exc
+    if not isinstance(raw, dict):
+        raise ProtocolError(
+            ErrorCode.DECODE_ERROR, f"frame must be a msgpack map, got {type(raw).__name__}"
+        )
+    kind = raw.get("type")
+    if not isinstance(kind, str):
+        raise ProtocolError(ErrorCode.INVALID_MESSAGE, "message has no string 'type' key")
+    cls = allowed.get(kind)
+    if cls is None:
+        known = ", ".join(sorted(allowed))
+        raise ProtocolError(
+            ErrorCode.UNKNOWN_TYPE, f"unknown message type {kind[:64]!r} (expected one of {known})"
+        )
+    return typing.cast(Message, _converter(cls)(raw, kind))
+
+
+# --------------------------------------------------------------------------- to the wire
+
+
+def _to_wire(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {name: _to_wire(getattr(value, name)) for name in _field_names(type(value))}
+    if isinstance(value, tuple | list):
+        return [_to_wire(item) for item in value]
+    if isinstance(value, dict):
+        return {key: _to_wire(item) for key, item in value.items()}
+    if isinstance(value, bool | str) or value is None:
+        return value
+    if isinstance(value, int):
+        return int(value)  # IntEnum -> plain int
+    if isinstance(value, float):
+        return value
+    raise TypeError(f"cannot encode {type(value).__name__} on the wire")
+
+
+@cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
+# --------------------------------------------------------------------------- from the wire
+
+
+def _invalid(path: str, expected: str, value: Any) -> ProtocolError:
+    return ProtocolError(
+        ErrorCode.INVALID_MESSAGE, f"{path}: expected {expected}, got {type(value).__name__}"
+    )
+
+
+def _as_float(value: Any, path: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise _invalid(path, "a number", value)
+    number = float(value)
+    if not math.isfinite(number):
+        raise ProtocolError(ErrorCode.INVALID_NUMBER, f"{path}: {number} is not a finite number")
+    return number
+
+
+def _as_int(value: Any, path: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise _invalid(path, "an integer", value)
+    if not -_INT64 <= value < _INT64:
+        raise ProtocolError(ErrorCode.INVALID_NUMBER, f"{path}: {value} is out of int64 range")
+    return value
+
+
+def _as_bool(value: Any, path: str) -> bool:
+    if not isinstance(value, bool):
+        raise _invalid(path, "a boolean", value)
+    return value
+
+
+def _as_str(value: Any, path: str) -> str:
+    if not isinstance(value, str):
+        raise _invalid(path, "a string", value)
+    if len(value) > _MAX_STRING:
+        raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: string longer than {_MAX_STRING}")
+    return value
+
+
+def _as_none(value: Any, path: str) -> None:
+    if value is not None:
+        raise _invalid(path, "nil", value)
+    return None
+
+
+def _scalar(value: Any, path: str) -> Any:
+    """An option value: nil, boolean, integer, finite float or string."""
+    if value is None or isinstance(value, bool):
+        return value
+    if isinstance(value, int):
+        return _as_int(value, path)
+    if isinstance(value, float):
+        return _as_float(value, path)
+    if isinstance(value, str):
+        return _as_str(value, path)
+    raise _invalid(path, "nil, a boolean, a number or a string", value)
+
+
+_SCALARS: dict[Any, Converter] = {
+    float: _as_float,
+    int: _as_int,
+    bool: _as_bool,
+    str: _as_str,
+    type(None): _as_none,
+}
+
+
+def _union(options: list[Converter], names: str) -> Converter:
+    others = [option for option in options if option is not _as_none]
+    if len(others) == 1:  # Optional[X]: let X's own, more precise error through
+        only = others[0]
+
+        def optional(value: Any, path: str) -> Any:
+            return None if value is None else only(value, path)
+
+        return optional
+
+    def convert(value: Any, path: str) -> Any:
+        if value is None and _as_none in options:
+            return None
+        for option in options:
+            if option is _as_none:
+                continue
+            try:
+                return option(value, path)
+            except ProtocolError as exc:
+                if exc.code is ErrorCode.INVALID_NUMBER:
+                    raise
+        raise _invalid(path, names, value)
+
+    return convert
+
+
+def _tuple(item: Converter, length: int | None) -> Converter:
+    def convert(value: Any, path: str) -> tuple[Any, ...]:
+        if not isinstance(value, list | tuple):
+            raise _invalid(path, "an array", value)
+        if length is not None and len(value) != length:
+            raise ProtocolError(
+                ErrorCode.INVALID_MESSAGE, f"{path}: expected {length} items, got {len(value)}"
+            )
+        if len(value) > _MAX_ITEMS:
+            raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: more than {_MAX_ITEMS} items")
+        return tuple(item(v, f"{path}[{i}]") for i, v in enumerate(value))
+
+    return convert
+
+
+def _mapping(item: Converter) -> Converter:
+    def convert(value: Any, path: str) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise _invalid(path, "a map", value)
+        if len(value) > _MAX_ITEMS:
+            raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: more than {_MAX_ITEMS} keys")
+        return {_as_str(k, path): item(v, f"{path}.{k}") for k, v in value.items()}
+
+    return convert
+
+
+def _converter_for(hint: Any) -> Converter:
+    if hint in _SCALARS:
+        return _SCALARS[hint]
+    if dataclasses.is_dataclass(hint):
+        return _converter(typing.cast(type, hint))
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        names = " or ".join(getattr(a, "__name__", str(a)) for a in args)
+        return _union([_converter_for(a) for a in args], names)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return _tuple(_converter_for(args[0]), None)
+        items = [_converter_for(a) for a in args]
+
+        def fixed(value: Any, path: str) -> tuple[Any, ...]:
+            values = _tuple(_scalar, len(items))(value, path)
+            return tuple(
+                conv(v, f"{path}[{i}]")
+                for i, (conv, v) in enumerate(zip(items, values, strict=True))
+            )
+
+        return fixed
+    if origin is dict:
+        value_hint = args[1]
+        if typing.get_origin(value_hint) in (typing.Union, types.UnionType):
+            return _mapping(_scalar)
+        return _mapping(_converter_for(value_hint))
+    raise TypeError(f"no wire converter for {hint!r}")
+
+
+@cache
+def _converter(cls: type) -> Converter:
+    """Build (once per class) a function that turns a wire map into an instance of `cls`."""
+    hints = typing.get_type_hints(cls)
+    fields = []
+    for f in dataclasses.fields(cls):
+        has_default = (
+            f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+        )
+        fields.append((f.name, has_default, _converter_for(hints[f.name])))
+
+    def convert(value: Any, path: str) -> Any:
+        if not isinstance(value, dict):
+            raise _invalid(path, "a map", value)
+        kwargs = {}
+        for name, has_default, field_converter in fields:
+            if name in value:
+                kwargs[name] = field_converter(value[name], f"{path}.{name}")
+            elif not has_default:
+                raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: missing field {name!r}")
+        return cls(**kwargs)
+
+    return convert

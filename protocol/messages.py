@@ -1,0 +1,249 @@
+"""Typed, immutable messages of the bridge protocol.
+
+Requests go from the learner (client) to the simulator (server): `Hello`, `Reset`, `Step`,
+`Close`. Replies go back: `Welcome`, `Observation`, `Error`, `Bye`. Every message maps one to one
+onto a msgpack map on the wire (see `protocol.codec` and docs/protocol.md); the class attribute
+`TYPE` is the value of that map's ``type`` key.
+
+Units are SI throughout: metres, seconds, m/s, m/s^2. Lane indices count from 0 at the rightmost
+lane; lateral offsets are positive to the left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import ClassVar
+
+OptionValue = bool | int | float | str | None
+
+
+class LaneChange(IntEnum):
+    """Lane-change command of a step: -1 right, 0 keep, +1 left (the paper's RLC/LK/LLC)."""
+
+    RIGHT = -1
+    KEEP = 0
+    LEFT = 1
+
+
+# --------------------------------------------------------------------------- requests
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """Opens a session: the client's protocol version and a free-form client name."""
+
+    TYPE: ClassVar[str] = "hello"
+    protocol: tuple[int, int]
+    client: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Reset:
+    """Starts a new episode of `scenario`; the same seed and options give the same episode."""
+
+    TYPE: ClassVar[str] = "reset"
+    scenario: str
+    seed: int | None = None
+    options: dict[str, OptionValue] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class Step:
+    """One decision: longitudinal acceleration (m/s^2) and lane change (-1, 0, +1).
+
+    `seq` numbers the steps of an episode from 1; the server answers a repeated `seq` with its
+    cached reply instead of advancing the simulation twice.
+    """
+
+    TYPE: ClassVar[str] = "step"
+    seq: int
+    acceleration: float
+    lane_change: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Close:
+    """Ends the session; the server frees the simulation for the next client."""
+
+    TYPE: ClassVar[str] = "close"
+
+
+# --------------------------------------------------------------------------- replies
+
+
+@dataclass(frozen=True, slots=True)
+class ScenarioInfo:
+    """A scenario the server offers, with its options and their default values."""
+
+    name: str
+    description: str
+    options: dict[str, OptionValue] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class FieldSpec:
+    """One entry of the flat observation vector: name, unit and meaning."""
+
+    name: str
+    unit: str
+    description: str
+
+
+@dataclass(frozen=True, slots=True)
+class ActionSchema:
+    """What a step may ask for: acceleration bounds and the lane-change values."""
+
+    acceleration_min: float
+    acceleration_max: float
+    lane_change: dict[str, int] = field(default_factory=lambda: {"right": -1, "keep": 0, "left": 1})
+
+
+@dataclass(frozen=True, slots=True)
+class Welcome:
+    """The server's answer to `Hello`: versions, scenarios and the two schemas."""
+
+    TYPE: ClassVar[str] = "welcome"
+    protocol: tuple[int, int]
+    server: str
+    backend: str
+    backend_version: str
+    scenarios: tuple[ScenarioInfo, ...]
+    observation_fields: tuple[FieldSpec, ...]
+    action: ActionSchema
+    sensor_range: float
+    max_frame_bytes: int
+
+
+@dataclass(frozen=True, slots=True)
+class Error:
+    """A refused request: a stable machine-readable `code` and a human message."""
+
+    TYPE: ClassVar[str] = "error"
+    code: str
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class Bye:
+    """Acknowledges `Close`."""
+
+    TYPE: ClassVar[str] = "bye"
+
+
+# --------------------------------------------------------------------------- observation
+
+
+@dataclass(frozen=True, slots=True)
+class Ego:
+    """State of the controlled vehicle after the step."""
+
+    speed: float
+    acceleration: float
+    lane: int
+    lane_count: int
+    position: float
+    speed_limit: float
+
+
+@dataclass(frozen=True, slots=True)
+class Neighbour:
+    """A surrounding vehicle as seen by the ego's sensors.
+
+    `gap` is the net longitudinal distance, bumper to bumper (negative when the vehicles overlap
+    longitudinally, e.g. alongside); `lateral` is the lateral offset of its centre from the ego's
+    (positive left). An absent vehicle has ``present=False``, ``gap`` equal to the sensor range,
+    ``lateral`` and ``speed`` 0 and an empty id.
+    """
+
+    present: bool
+    gap: float
+    lateral: float
+    speed: float
+    id: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Neighbours:
+    """The six neighbours of the paper's Fig. 11: leader and follower in each of three lanes."""
+
+    left_leader: Neighbour
+    left_follower: Neighbour
+    leader: Neighbour
+    follower: Neighbour
+    right_leader: Neighbour
+    right_follower: Neighbour
+
+
+@dataclass(frozen=True, slots=True)
+class Events:
+    """What happened during the step (over all simulation steps of a decision)."""
+
+    collision: bool = False
+    collision_with: str = ""
+    end_of_road: bool = False
+    lane_change_started: bool = False
+    lane_change_completed: bool = False
+    lane_change_refused: bool = False
+    teleported: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class AppliedAction:
+    """The action as requested and as applied, with the reasons for any difference.
+
+    `acceleration_limited_by` is "" (applied as asked), "bounds" (clipped to the action schema),
+    "speed_limit" (reduced to keep the road's speed limit) or "standstill" (raised so that the
+    speed does not go below zero). `lane_change_refused` is "" or "gap_too_small", "no_lane",
+    "in_progress".
+    """
+
+    requested_acceleration: float
+    requested_lane_change: int
+    acceleration: float
+    lane_change: int
+    acceleration_limited_by: str = ""
+    lane_change_refused: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderTrip:
+    """Trip of the vehicle directly ahead of the ego when it entered: the speed ceiling.
+
+    On a single lane the ego cannot arrive before this vehicle, so its average speed bounds the
+    ego's. `arrival_time` and `average_speed` are None if it had not arrived when reported.
+    """
+
+    id: str
+    depart_time: float
+    arrival_time: float | None
+    average_speed: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class Observation:
+    """Recognition state of the ego after a reset (seq 0) or a step (the step's seq).
+
+    `reason` says why an episode ended: "collision", "stopped", "end_of_road", "time_limit",
+    "ego_lost", or "" while it runs. `ceiling` is set on the last observation of an episode.
+    """
+
+    TYPE: ClassVar[str] = "observation"
+    seq: int
+    time: float
+    ego: Ego
+    neighbours: Neighbours
+    events: Events
+    action: AppliedAction
+    terminated: bool = False
+    truncated: bool = False
+    reason: str = ""
+    ceiling: LeaderTrip | None = None
+
+
+Request = Hello | Reset | Step | Close
+Reply = Welcome | Observation | Error | Bye
+Message = Request | Reply
+
+REQUEST_TYPES: tuple[type[Request], ...] = (Hello, Reset, Step, Close)
+REPLY_TYPES: tuple[type[Reply], ...] = (Welcome, Observation, Error, Bye)

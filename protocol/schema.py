@@ -1,0 +1,103 @@
+"""The flat observation vector: every field's name, unit, meaning and order.
+
+The server announces `OBSERVATION_FIELDS` in its `Welcome`; a client turns each named
+`Observation` into a vector in exactly that order with `Flattener`. Absent neighbours contribute
+``present = 0``, ``gap = sensor range``, ``lateral = 0`` and ``speed = 0``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from operator import attrgetter
+
+from protocol.messages import FieldSpec, Observation
+
+NEIGHBOUR_SLOTS: tuple[str, ...] = (
+    "left_leader",
+    "left_follower",
+    "leader",
+    "follower",
+    "right_leader",
+    "right_follower",
+)
+"""The six neighbours of the paper's Fig. 11, in vector order."""
+
+_SLOT_MEANING = {
+    "left_leader": "nearest vehicle ahead in the lane to the left",
+    "left_follower": "nearest vehicle behind in the lane to the left",
+    "leader": "nearest vehicle ahead in the ego's lane",
+    "follower": "nearest vehicle behind in the ego's lane",
+    "right_leader": "nearest vehicle ahead in the lane to the right",
+    "right_follower": "nearest vehicle behind in the lane to the right",
+}
+
+Getter = Callable[[Observation], float]
+
+
+def _neighbour_fields() -> list[tuple[FieldSpec, Getter]]:
+    fields: list[tuple[FieldSpec, Getter]] = []
+    for slot in NEIGHBOUR_SLOTS:
+        meaning = _SLOT_MEANING[slot]
+        specs = (
+            FieldSpec(f"{slot}_present", "1", f"1 if there is a {meaning} within sensor range"),
+            FieldSpec(f"{slot}_gap", "m", f"net bumper-to-bumper gap to the {meaning}"),
+            FieldSpec(f"{slot}_lateral", "m", f"lateral offset of the {meaning} (left +)"),
+            FieldSpec(f"{slot}_speed", "m/s", f"speed of the {meaning}"),
+        )
+        for spec, part in zip(specs, ("present", "gap", "lateral", "speed"), strict=True):
+            fields.append((spec, attrgetter(f"neighbours.{slot}.{part}")))
+    return fields
+
+
+def _leader_speed_diff(obs: Observation) -> float:
+    leader = obs.neighbours.leader
+    return obs.ego.speed - leader.speed if leader.present else 0.0
+
+
+_FIELDS: list[tuple[FieldSpec, Getter]] = [
+    (FieldSpec("time", "s", "simulation time"), lambda o: o.time),
+    (FieldSpec("ego_speed", "m/s", "speed of the ego"), lambda o: o.ego.speed),
+    (
+        FieldSpec("ego_acceleration", "m/s^2", "acceleration of the ego over the last step"),
+        lambda o: o.ego.acceleration,
+    ),
+    (FieldSpec("ego_lane", "1", "lane index of the ego, 0 = rightmost"), lambda o: o.ego.lane),
+    (FieldSpec("ego_lane_count", "1", "number of lanes of the road"), lambda o: o.ego.lane_count),
+    (
+        FieldSpec("ego_position", "m", "distance of the ego's front from the start of the road"),
+        lambda o: o.ego.position,
+    ),
+    (FieldSpec("speed_limit", "m/s", "speed limit at the ego"), lambda o: o.ego.speed_limit),
+    (
+        FieldSpec(
+            "leader_speed_diff", "m/s", "ego speed minus leader speed (0 when there is no leader)"
+        ),
+        _leader_speed_diff,
+    ),
+    *_neighbour_fields(),
+]
+
+OBSERVATION_FIELDS: tuple[FieldSpec, ...] = tuple(spec for spec, _ in _FIELDS)
+"""The canonical flat vector, in order."""
+
+_GETTERS: dict[str, Getter] = {spec.name: getter for spec, getter in _FIELDS}
+
+
+class Flattener:
+    """Turns named observations into flat vectors in the order of a schema."""
+
+    def __init__(self, fields: Sequence[FieldSpec] = OBSERVATION_FIELDS) -> None:
+        unknown = [f.name for f in fields if f.name not in _GETTERS]
+        if unknown:
+            raise ValueError(
+                f"observation schema has fields this protocol does not know: {unknown}"
+            )
+        self.names: tuple[str, ...] = tuple(f.name for f in fields)
+        self._getters = [_GETTERS[name] for name in self.names]
+
+    def __call__(self, obs: Observation) -> list[float]:
+        return [float(get(obs)) for get in self._getters]
+
+    def index(self, name: str) -> int:
+        """Position of a named field in the vector."""
+        return self.names.index(name)

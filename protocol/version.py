@@ -1,0 +1,23 @@
+"""Protocol version of the bridge wire format (semantic versioning).
+
+Revision history:
+    1.0  First release: hello/welcome handshake, reset/step/close, named observations
+         with the six neighbours of the paper's Fig. 11, events and applied actions.
+
+Compatibility rule: peers with the same major version interoperate. A minor version only adds
+optional fields or message types; receivers ignore map keys they do not know.
+"""
+
+from __future__ import annotations
+
+PROTOCOL_VERSION: tuple[int, int] = (1, 0)
+
+
+def format_version(version: tuple[int, int]) -> str:
+    """Render a version tuple as ``MAJOR.MINOR``."""
+    return f"{version[0]}.{version[1]}"
+
+
+def is_compatible(ours: tuple[int, int], theirs: tuple[int, int]) -> bool:
+    """Two protocol versions interoperate when their major versions agree."""
+    return ours[0] == theirs[0]

@@ -1,0 +1,250 @@
+"""SUMO scenarios as standard files: a network built by netconvert, routes and a .sumocfg.
+
+Every scenario is written to a cache folder (one subfolder per distinct set of file-affecting
+options), so a user can open any of them in sumo-gui or netedit. Built-in scenarios:
+
+* ``cf``   - the paper's car-following case: 2 km, one lane, 80 km/h, dense human traffic.
+* ``cflc`` - the paper's integrated case: 2 km, three lanes, 700 veh/h/lane.
+
+A user's own ``.sumocfg`` plus an ego route is a `CustomScenario`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol.errors import ErrorCode
+from protocol.messages import OptionValue, ScenarioInfo
+from sim_server.backend import BackendError
+
+EGO_ID = "ego"
+EGO_TYPE = "ego"
+EGO_ROUTE = "ego_route"
+
+COMMON_OPTIONS: dict[str, OptionValue] = {
+    "decision_interval": 0.1,
+    "max_episode_time": 300.0,
+    "warmup": 30.0,
+    "insertion_timeout": 60.0,
+    "stop_speed": 1.0,
+    "stop_gap": 15.0,
+    "stop_patience": 2.0,
+    "report_ceiling": True,
+}
+"""Options every scenario accepts (seconds, m/s, m); see docs/protocol.md."""
+
+TRAFFIC_OPTIONS: dict[str, OptionValue] = {
+    "flow": 1500.0,
+    "speed_factor_mean": 0.85,
+    "speed_factor_dev": 0.15,
+    "sigma": 0.5,
+}
+"""Options of the built-in scenarios that change their route file."""
+
+
+@dataclass(frozen=True)
+class RoadScenario:
+    """A straight road with Poisson human traffic on every lane."""
+
+    name: str
+    description: str
+    lanes: int
+    length: float = 2000.0
+    speed_limit: float = 80 / 3.6
+    defaults: dict[str, OptionValue] = field(default_factory=dict)
+
+    def info(self) -> ScenarioInfo:
+        options = {**COMMON_OPTIONS, **TRAFFIC_OPTIONS, **self.defaults}
+        return ScenarioInfo(self.name, self.description, options)
+
+
+@dataclass(frozen=True)
+class CustomScenario:
+    """A user's own .sumocfg; the ego drives `ego_route`, defined in the user's route files."""
+
+    name: str
+    sumocfg: Path
+    ego_route: str
+
+    def info(self) -> ScenarioInfo:
+        description = f"user scenario {self.sumocfg} with ego route {self.ego_route!r}"
+        return ScenarioInfo(self.name, description, dict(COMMON_OPTIONS))
+
+
+Scenario = RoadScenario | CustomScenario
+
+BUILTIN_SCENARIOS: dict[str, RoadScenario] = {
+    s.name: s
+    for s in (
+        RoadScenario(
+            "cf",
+            "car following: 2 km single lane, 80 km/h, 1500 veh/h human traffic (paper 4.3)",
+            lanes=1,
+        ),
+        RoadScenario(
+            "cflc",
+            "car following and lane changing: 2 km, 3 lanes, 80 km/h, 700 veh/h/lane (paper 4.5)",
+            lanes=3,
+            defaults={"flow": 700.0},
+        ),
+    )
+}
+
+
+def default_cache_dir() -> Path:
+    """Where scenario files are written: $XDG_CACHE_HOME/av-bridge/scenarios."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "av-bridge" / "scenarios"
+
+
+def find_netconvert() -> str:
+    """The netconvert binary from the eclipse-sumo wheel (or a SUMO installation on PATH)."""
+    found = shutil.which("netconvert")
+    if found:
+        return found
+    try:
+        import sumo  # eclipse-sumo wheel
+
+        candidate = Path(sumo.SUMO_HOME) / "bin" / "netconvert"
+        if candidate.exists():
+            return str(candidate)
+    except ImportError:
+        pass
+    raise FileNotFoundError("netconvert not found: install eclipse-sumo (pip install eclipse-sumo)")
+
+
+def build_road(scenario: RoadScenario, options: dict[str, OptionValue], cache_dir: Path) -> Path:
+    """Write (or reuse) the files of a road scenario; returns the path of its .sumocfg.
+
+    The folder name is a hash of the files' contents, so a change of options or of this
+    generator never reuses stale files.
+    """
+    texts = {
+        "road.nod.xml": _nodes(scenario),
+        "road.edg.xml": _edges(scenario),
+        "routes.rou.xml": _routes(scenario, {key: options[key] for key in TRAFFIC_OPTIONS}),
+        f"{scenario.name}.sumocfg": _config(),
+    }
+    digest = hashlib.sha256(json.dumps(texts, sort_keys=True).encode()).hexdigest()[:12]
+    folder = cache_dir / f"{scenario.name}-{digest}"
+    config = folder / f"{scenario.name}.sumocfg"
+    if config.exists():
+        return config
+    tmp = folder.with_name(f"{folder.name}.tmp{os.getpid()}")
+    tmp.mkdir(parents=True, exist_ok=True)
+    for name, text in texts.items():
+        (tmp / name).write_text(text)
+    _run_netconvert(tmp)
+    try:
+        tmp.rename(folder)
+    except OSError:  # another process built the same scenario meanwhile
+        shutil.rmtree(tmp, ignore_errors=True)
+    return config
+
+
+def _nodes(scenario: RoadScenario) -> str:
+    return (
+        "<nodes>\n"
+        '    <node id="start" x="0" y="0"/>\n'
+        f'    <node id="end" x="{scenario.length:.2f}" y="0"/>\n'
+        "</nodes>\n"
+    )
+
+
+def _edges(scenario: RoadScenario) -> str:
+    return (
+        "<edges>\n"
+        f'    <edge id="road" from="start" to="end" numLanes="{scenario.lanes}" '
+        f'speed="{scenario.speed_limit:.4f}"/>\n'
+        "</edges>\n"
+    )
+
+
+def _run_netconvert(folder: Path) -> None:
+    result = subprocess.run(
+        [
+            find_netconvert(),
+            "--node-files", str(folder / "road.nod.xml"),
+            "--edge-files", str(folder / "road.edg.xml"),
+            "--output-file", str(folder / "road.net.xml"),
+            "--no-turnarounds", "true",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )  # fmt: skip
+    if result.returncode != 0:
+        raise RuntimeError(f"netconvert failed ({result.returncode}): {result.stderr.strip()}")
+
+
+def _routes(scenario: RoadScenario, traffic: dict[str, OptionValue]) -> str:
+    mean = float(traffic["speed_factor_mean"])  # type: ignore[arg-type]
+    dev = float(traffic["speed_factor_dev"])  # type: ignore[arg-type]
+    sigma = float(traffic["sigma"])  # type: ignore[arg-type]
+    flow = float(traffic["flow"])  # type: ignore[arg-type]
+    flows = "".join(
+        f'    <flow id="human{lane}" type="human" route="{EGO_ROUTE}" begin="0" end="86400" '
+        f'period="exp({flow / 3600:.6f})" departLane="{lane}" departPos="base" '
+        'departSpeed="max"/>\n'
+        for lane in range(scenario.lanes)
+        if flow > 0
+    )
+    return (
+        "<routes>\n"
+        f'    <vType id="human" vClass="passenger" carFollowModel="Krauss" sigma="{sigma}" '
+        f'speedFactor="normc({mean},{dev},0.5,1.5)" lcModel="LC2013"/>\n'
+        f'    <vType id="{EGO_TYPE}" vClass="passenger" accel="3" decel="6" emergencyDecel="9" '
+        'sigma="0" speedFactor="1" speedDev="0" color="0,0,1"/>\n'
+        f'    <route id="{EGO_ROUTE}" edges="road"/>\n'
+        f"{flows}"
+        "</routes>\n"
+    )
+
+
+def _config() -> str:
+    return (
+        "<configuration>\n"
+        "    <input>\n"
+        '        <net-file value="road.net.xml"/>\n'
+        '        <route-files value="routes.rou.xml"/>\n'
+        "    </input>\n"
+        "    <time>\n"
+        '        <step-length value="0.1"/>\n'
+        "    </time>\n"
+        "    <processing>\n"
+        '        <collision.action value="warn"/>\n'
+        '        <collision.mingap-factor value="0"/>\n'
+        '        <time-to-teleport value="-1"/>\n'
+        '        <lanechange.duration value="2"/>\n'
+        "    </processing>\n"
+        "    <report>\n"
+        '        <no-step-log value="true"/>\n'
+        '        <no-warnings value="true"/>\n'
+        "    </report>\n"
+        "</configuration>\n"
+    )
+
+
+_POSITIVE = ("decision_interval", "max_episode_time", "insertion_timeout", "speed_factor_mean")
+_NON_NEGATIVE = ("warmup", "stop_speed", "stop_gap", "stop_patience", "flow", "speed_factor_dev")
+
+
+def check_options(options: dict[str, OptionValue]) -> None:
+    """Range checks on option values (names and types are checked by the server)."""
+    for name in _POSITIVE:
+        if name in options and not float(options[name]) > 0:  # type: ignore[arg-type]
+            raise BackendError(ErrorCode.INVALID_OPTION, f"option {name} must be > 0")
+    for name in _NON_NEGATIVE:
+        if name in options and not float(options[name]) >= 0:  # type: ignore[arg-type]
+            raise BackendError(ErrorCode.INVALID_OPTION, f"option {name} must be >= 0")
+    if "sigma" in options and not 0 <= float(options["sigma"]) <= 1:  # type: ignore[arg-type]
+        raise BackendError(ErrorCode.INVALID_OPTION, "option sigma must be within [0, 1]")
+    if "flow" in options and float(options["flow"]) > 3600:  # type: ignore[arg-type]
+        raise BackendError(ErrorCode.INVALID_OPTION, "option flow must be <= 3600 veh/h/lane")

@@ -1,0 +1,97 @@
+"""Shared fixtures: real `sim-server` subprocesses on free loopback ports."""
+
+from __future__ import annotations
+
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+READY_TIMEOUT_S = 60.0
+
+
+@dataclass
+class RunningServer:
+    """A sim-server subprocess and the address it printed."""
+
+    process: subprocess.Popen[str]
+    address: str
+
+    def stderr_text(self) -> str:
+        return self.process.stderr.read() if self.process.stderr else ""
+
+
+def wait_for_line(process: subprocess.Popen[str], prefix: str, timeout_s: float) -> str:
+    """Read stdout until a line starting with `prefix` (the readiness signal), or fail."""
+    assert process.stdout is not None
+    selector = selectors.DefaultSelector()
+    selector.register(process.stdout, selectors.EVENT_READ)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            if not selector.select(timeout=max(0.0, deadline - time.monotonic())):
+                break
+            line = process.stdout.readline()
+            if not line:
+                break  # the process closed stdout: it died
+            if line.startswith(prefix):
+                return line[len(prefix) :].strip()
+    finally:
+        selector.close()
+    process.kill()
+    _, stderr = process.communicate(timeout=10)
+    raise RuntimeError(f"sim-server did not print {prefix!r} within {timeout_s} s:\n{stderr}")
+
+
+@contextmanager
+def sim_server(*args: str, cache_dir: Path | None = None) -> Iterator[RunningServer]:
+    """Start `sim-server --bind tcp://127.0.0.1:0 ARGS`, wait for readiness, always clean up."""
+    env = dict(os.environ)
+    if cache_dir is not None:
+        env["XDG_CACHE_HOME"] = str(cache_dir)
+    command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0", *args]
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        address = wait_for_line(process, "listening on ", READY_TIMEOUT_S)
+        yield RunningServer(process, address)
+    finally:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(timeout=10)
+        for stream in (process.stdout, process.stderr):
+            if stream is not None:
+                stream.close()
+
+
+@pytest.fixture(scope="session")
+def scenario_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One scenario cache for the whole run (netconvert runs once per scenario)."""
+    return tmp_path_factory.mktemp("xdg-cache")
+
+
+@pytest.fixture(scope="module")
+def sumo_server(scenario_cache: Path) -> Iterator[RunningServer]:
+    """A real SUMO server for a test module."""
+    with sim_server("--backend", "sumo", cache_dir=scenario_cache) as server:
+        yield server
+
+
+@pytest.fixture
+def fake_server() -> Iterator[RunningServer]:
+    """A server process with the kinematic fake backend (fast)."""
+    with sim_server("--backend", "fake") as server:
+        yield server

@@ -1,0 +1,176 @@
+"""The protocol state machine, driven frame by frame (no sockets, fake backend)."""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+
+from protocol.codec import decode_reply, encode
+from protocol.messages import Bye, Close, Error, Hello, Observation, Reset, Step, Welcome
+from protocol.version import PROTOCOL_VERSION
+from sim_server.backend import BackendError
+from sim_server.fake_backend import FakeBackend
+from sim_server.server import Session
+
+PEER = b"peer-1"
+
+
+def ask(session: Session, message: object, peer: bytes = PEER, now: float = 0.0) -> object:
+    return decode_reply(session.handle(peer, encode(message), now))  # type: ignore[arg-type]
+
+
+def ask_raw(session: Session, frame: bytes, peer: bytes = PEER) -> object:
+    return decode_reply(session.handle(peer, frame, 0.0))
+
+
+@pytest.fixture
+def session() -> Session:
+    return Session(FakeBackend(), max_frame_bytes=4096, session_timeout_s=5.0)
+
+
+def started(session: Session) -> Observation:
+    assert isinstance(ask(session, Hello(PROTOCOL_VERSION)), Welcome)
+    obs = ask(session, Reset("cf", 1))
+    assert isinstance(obs, Observation)
+    return obs
+
+
+def error_code(reply: object) -> str:
+    assert isinstance(reply, Error), reply
+    return reply.code
+
+
+def test_handshake_announces_versions_schema_and_scenarios(session: Session) -> None:
+    welcome = ask(session, Hello(PROTOCOL_VERSION, "t"))
+    assert isinstance(welcome, Welcome)
+    assert welcome.protocol == PROTOCOL_VERSION
+    assert welcome.backend == "fake"
+    assert [s.name for s in welcome.scenarios] == ["cf"]
+    assert welcome.action.acceleration_min < 0 < welcome.action.acceleration_max
+    assert welcome.observation_fields[0].name == "time"
+    assert welcome.max_frame_bytes == 4096
+
+
+def test_major_version_mismatch_is_refused_naming_both(session: Session) -> None:
+    reply = ask(session, Hello((PROTOCOL_VERSION[0] + 1, 0)))
+    assert error_code(reply) == "version_mismatch"
+    assert f"{PROTOCOL_VERSION[0] + 1}.0" in reply.message  # type: ignore[union-attr]
+    assert f"{PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]}" in reply.message  # type: ignore[union-attr]
+
+
+def test_requests_before_hello_are_out_of_order(session: Session) -> None:
+    assert error_code(ask(session, Reset("cf", 1))) == "out_of_order"
+    assert error_code(ask(session, Step(1, 0.0))) == "out_of_order"
+
+
+def test_step_before_reset_is_out_of_order(session: Session) -> None:
+    ask(session, Hello(PROTOCOL_VERSION))
+    assert error_code(ask(session, Step(1, 0.0))) == "out_of_order"
+
+
+def test_an_episode_runs_with_sequence_numbers(session: Session) -> None:
+    obs = started(session)
+    assert obs.seq == 0
+    for seq in range(1, 4):
+        obs = ask(session, Step(seq, 0.5))  # type: ignore[assignment]
+        assert isinstance(obs, Observation)
+        assert obs.seq == seq
+
+
+def test_a_repeated_step_is_answered_from_cache_without_advancing(session: Session) -> None:
+    started(session)
+    first = session.handle(PEER, encode(Step(1, 1.0)), 0.0)
+    again = session.handle(PEER, encode(Step(1, 1.0)), 0.0)
+    assert first == again
+    second = decode_reply(session.handle(PEER, encode(Step(2, 1.0)), 0.0))
+    assert isinstance(second, Observation)
+    assert second.time == pytest.approx(decode_reply(first).time + 0.1)  # type: ignore[union-attr]
+
+
+def test_a_skipped_sequence_number_is_refused(session: Session) -> None:
+    started(session)
+    assert error_code(ask(session, Step(5, 0.0))) == "sequence_error"
+    assert isinstance(ask(session, Step(1, 0.0)), Observation)
+
+
+def test_lane_change_outside_minus_one_to_one_is_refused(session: Session) -> None:
+    started(session)
+    assert error_code(ask(session, Step(1, 0.0, 2))) == "invalid_number"
+
+
+def test_options_are_checked_by_name_and_type(session: Session) -> None:
+    ask(session, Hello(PROTOCOL_VERSION))
+    assert error_code(ask(session, Reset("cf", 1, {"warp": 1}))) == "invalid_option"
+    assert (
+        error_code(ask(session, Reset("cf", 1, {"decision_interval": "fast"}))) == "invalid_option"
+    )
+    assert error_code(ask(session, Reset("mars", 1))) == "unknown_scenario"
+    assert error_code(ask(session, Reset("cf", -5))) == "invalid_number"
+    assert isinstance(ask(session, Reset("cf", 1, {"decision_interval": 1})), Observation)
+
+
+@pytest.mark.parametrize(
+    ("frame", "code"),
+    [
+        (b"\x00\xff garbage", "decode_error"),
+        (msgpack.packb({"type": "hello", "protocol": [1, 0], "client": "x" * 5000}), "frame_too_large"),
+        (msgpack.packb({"type": "step", "seq": 1, "acceleration": float("nan")}), "invalid_number"),
+        (msgpack.packb({"type": "step", "seq": 1}), "invalid_message"),
+        (msgpack.packb({"type": "teleport"}), "unknown_type"),
+    ],
+)  # fmt: skip
+def test_bad_input_gets_an_error_and_the_session_goes_on(
+    session: Session, frame: bytes, code: str
+) -> None:
+    started(session)
+    assert error_code(ask_raw(session, frame)) == code
+    assert isinstance(ask(session, Step(1, 0.0)), Observation)
+
+
+def test_a_second_client_is_busy_until_the_first_goes_quiet(session: Session) -> None:
+    started(session)
+    assert error_code(ask(session, Hello(PROTOCOL_VERSION), peer=b"other", now=1.0)) == "busy"
+    assert error_code(ask(session, Step(1, 0.0), peer=b"other", now=1.0)) == "busy"
+    # After the session timeout (5 s of silence) a new client's hello takes over.
+    assert isinstance(ask(session, Hello(PROTOCOL_VERSION), peer=b"other", now=10.0), Welcome)
+    assert error_code(ask(session, Step(1, 0.0), peer=PEER, now=10.5)) == "busy"
+
+
+def test_close_frees_the_simulator_for_another_client(session: Session) -> None:
+    started(session)
+    assert isinstance(ask(session, Close()), Bye)
+    assert isinstance(ask(session, Hello(PROTOCOL_VERSION), peer=b"other", now=0.1), Welcome)
+
+
+def test_a_finished_episode_refuses_further_steps_but_repeats_its_last_reply(
+    session: Session,
+) -> None:
+    started(session)
+    seq, obs = 0, None
+    while obs is None or not (obs.terminated or obs.truncated):
+        seq += 1
+        obs = ask(session, Step(seq, 3.0))  # full throttle: crash or end of road
+        assert isinstance(obs, Observation)
+    assert obs.reason in {"collision", "end_of_road"}
+    assert obs.ceiling is not None
+    assert ask(session, Step(seq, 3.0)) == obs
+    assert error_code(ask(session, Step(seq + 1, 0.0))) == "out_of_order"
+
+
+class ExplodingBackend(FakeBackend):
+    def step(self, seq: int, acceleration: float, lane_change: int) -> Observation:
+        if acceleration > 2:
+            raise RuntimeError("simulated bug")
+        if acceleration < -5:
+            raise BackendError(__import__("protocol").ErrorCode.SIMULATOR_ERROR, "sim died")
+        return super().step(seq, acceleration, lane_change)
+
+
+def test_backend_failures_become_error_replies() -> None:
+    session = Session(ExplodingBackend())
+    started(session)
+    assert error_code(ask(session, Step(1, 2.5))) == "simulator_error"
+    assert error_code(ask(session, Step(1, 0.0))) == "out_of_order"  # episode is over
+    assert isinstance(ask(session, Reset("cf", 2)), Observation)
+    assert error_code(ask(session, Step(1, -5.5))) == "simulator_error"
+    assert isinstance(ask(session, Reset("cf", 3)), Observation)
