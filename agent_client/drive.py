@@ -21,7 +21,7 @@ class Driver(Protocol):
 def run_episode(env: RemoteEnv, driver: Driver, seed: int, episode: int = 0) -> EpisodeSummary:
     """Drive one episode from reset to its end; returns its summary."""
     _, info = env.reset(seed=seed)
-    recorder = EpisodeRecorder(episode=episode, seed=seed)
+    recorder = EpisodeRecorder(episode=episode, seed=seed, step_length=env.step_length)
     obs: Observation = info["observation"]
     recorder.add(obs)
     while True:

@@ -1,8 +1,10 @@
 """Driving metrics from a stream of named observations: efficiency, comfort, safety.
 
-Jerk is the change of the ego's realised acceleration between consecutive observations divided
-by the time between them (with ``decision_interval`` > the step length this is the mean jerk over
-the interval). Time headway is gap / speed on steps with a leader; time to collision is
+Jerk is measured at the simulator's step length, as a passenger feels it: the change of the
+ego's realised acceleration between consecutive observations divided by one simulation step.
+With a ``decision_interval`` longer than a step the acceleration is constant inside the interval,
+so the whole change happens in one step and the other steps of the interval have zero jerk; they
+count as samples. Time headway is gap / speed on steps with a leader; time to collision is
 gap / (v - v_leader) on steps where the ego closes in.
 """
 
@@ -21,12 +23,20 @@ HEADWAY_SAFE = 1.0
 """s: time headways below this count as tailgating."""
 
 
-def jerk_series(accelerations: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Jerk (m/s^3) between consecutive samples of acceleration."""
+def jerk_series(
+    accelerations: np.ndarray, times: np.ndarray, step_length: float | None = None
+) -> tuple[np.ndarray, int]:
+    """Jerk (m/s^3) at each change of acceleration, and the number of simulation steps covered.
+
+    Without `step_length` the change is spread over the time between samples.
+    """
     if len(accelerations) < 2:
-        return np.zeros(0)
+        return np.zeros(0), 0
     dt = np.diff(times)
-    return np.diff(accelerations) / np.where(dt > 0, dt, np.nan)
+    if step_length is None:
+        return np.diff(accelerations) / np.where(dt > 0, dt, np.nan), len(dt)
+    steps = int(np.maximum(np.rint(dt / step_length), 1).sum())
+    return np.diff(accelerations) / step_length, steps
 
 
 def time_headways(gaps: np.ndarray, speeds: np.ndarray, min_speed: float = 0.1) -> np.ndarray:
@@ -91,6 +101,7 @@ class EpisodeRecorder:
 
     episode: int = 0
     seed: int = 0
+    step_length: float | None = None
     observations: list[Observation] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
 
@@ -113,8 +124,8 @@ class EpisodeRecorder:
             ]
         )
         leader_speeds = np.array([o.neighbours.leader.speed for o in observations])
-        jerks = np.abs(jerk_series(accelerations, times))
-        jerks = jerks[np.isfinite(jerks)]
+        jerks, jerk_samples = jerk_series(accelerations, times, self.step_length)
+        jerks = np.abs(jerks[np.isfinite(jerks)])
         headways = time_headways(gaps, speeds)
         ttcs = times_to_collision(gaps, speeds, leader_speeds)
         last = observations[-1]
@@ -131,9 +142,9 @@ class EpisodeRecorder:
             distance=distance,
             average_speed=average_speed,
             collisions=sum(o.events.collision for o in observations),
-            jerk_share_above_limit=float(np.mean(jerks > JERK_COMFORT_LIMIT))
-            if len(jerks)
-            else 0.0,
+            jerk_share_above_limit=(
+                float(np.sum(jerks > JERK_COMFORT_LIMIT)) / jerk_samples if jerk_samples else 0.0
+            ),
             max_abs_jerk=float(jerks.max()) if len(jerks) else 0.0,
             headway_share_below_1s=float(np.mean(headways < HEADWAY_SAFE))
             if len(headways)

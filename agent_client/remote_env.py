@@ -55,6 +55,7 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         except Exception:
             self.close()  # free the server for the next client, then report
             raise
+        self.step_length = next(s.step_length for s in self.welcome.scenarios if s.name == scenario)
         self.flatten = Flattener(self.welcome.observation_fields)
         schema = self.welcome.action
         self.action_space = spaces.Dict(

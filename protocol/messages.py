@@ -74,11 +74,15 @@ class Close:
 
 @dataclass(frozen=True, slots=True)
 class ScenarioInfo:
-    """A scenario the server offers, with its options and their default values."""
+    """A scenario the server offers, with its options and their default values.
+
+    `step_length` is the simulator's own time step (s): a decision lasts one or more of them.
+    """
 
     name: str
     description: str
     options: dict[str, OptionValue] = field(default_factory=dict)
+    step_length: float = 0.1
 
 
 @dataclass(frozen=True, slots=True)

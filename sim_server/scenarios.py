@@ -18,6 +18,7 @@ import shutil
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
+from xml.etree import ElementTree
 
 from protocol.errors import ErrorCode
 from protocol.messages import OptionValue, ScenarioInfo
@@ -74,7 +75,15 @@ class CustomScenario:
 
     def info(self) -> ScenarioInfo:
         description = f"user scenario {self.sumocfg} with ego route {self.ego_route!r}"
-        return ScenarioInfo(self.name, description, dict(COMMON_OPTIONS))
+        return ScenarioInfo(self.name, description, dict(COMMON_OPTIONS), self.step_length())
+
+    def step_length(self) -> float:
+        """The config's ``<step-length value=.../>`` (SUMO's default 1 s when absent)."""
+        try:
+            found = ElementTree.parse(self.sumocfg).find(".//step-length")
+        except (OSError, ElementTree.ParseError):
+            return 1.0
+        return float(found.get("value", "1")) if found is not None else 1.0
 
 
 Scenario = RoadScenario | CustomScenario

@@ -14,8 +14,18 @@ from tests.protocol.test_codec import make_observation
 
 
 def test_jerk_from_an_acceleration_series() -> None:
-    jerk = jerk_series(np.array([0.0, 0.5, 0.5, -0.3]), np.array([0.0, 0.1, 0.2, 0.3]))
+    jerk, samples = jerk_series(np.array([0.0, 0.5, 0.5, -0.3]), np.array([0.0, 0.1, 0.2, 0.3]))
     assert jerk == pytest.approx([5.0, 0.0, -8.0])
+    assert samples == 3
+
+
+def test_jerk_with_long_decisions_happens_in_one_simulation_step() -> None:
+    # Decisions every 1 s on a 0.1 s simulator: a change of 1 m/s^2 is a 10 m/s^3 jerk in one
+    # step, and the interval holds 10 samples.
+    times = np.array([0.0, 1.0, 2.0])
+    jerk, samples = jerk_series(np.array([0.0, 1.0, 1.2]), times, step_length=0.1)
+    assert jerk == pytest.approx([10.0, 2.0])
+    assert samples == 20
 
 
 def test_headway_skips_missing_leaders_and_standstill() -> None:
