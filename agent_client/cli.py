@@ -31,7 +31,7 @@ def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--server", default=DEFAULT_ADDRESS, help=f"server address (default {DEFAULT_ADDRESS})"
     )
-    parser.add_argument("--scenario", default="cf", help="scenario name (default cf)")
+    parser.add_argument("--scenario", help="scenario name (default cf)")
     parser.add_argument(
         "--option",
         action="append",
@@ -68,6 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--reward", default="safe", help="reward reported per episode (default safe)"
     )
     drive.set_defaults(run=run_drive)
+
+    from agent_client.train_cli import add_train_parser
+
+    add_train_parser(commands, add_connection_arguments)
     return parser
 
 
@@ -93,7 +97,11 @@ def run_drive(args: argparse.Namespace) -> int:
 
     driver = load_driver(args.policy)
     env = RemoteEnv(
-        args.server, args.scenario, reward=args.reward, timeout_s=args.timeout, **dict(args.option)
+        args.server,
+        args.scenario or "cf",
+        reward=args.reward,
+        timeout_s=args.timeout,
+        **dict(args.option),
     )
     try:
         summaries = []
@@ -108,7 +116,7 @@ def run_drive(args: argparse.Namespace) -> int:
     if not args.json:
         totals = aggregate(summaries)
         print(
-            f"{args.policy} on {args.scenario}: {len(summaries)} episodes | "
+            f"{args.policy} on {args.scenario or 'cf'}: {len(summaries)} episodes | "
             f"avg speed {totals['average_speed']:.2f} m/s (sd {totals['average_speed_sd']:.2f}), "
             f"{totals['speed_ratio_to_ceiling']:.3f}x the leader-at-entry ceiling | "
             f"collisions/episode {totals['collisions_per_episode']:.2f} | "

@@ -360,12 +360,12 @@ class SafeReward:
 
     Per step without a collision::
 
-        r = (v / v_limit) * H(h) * (1 - w_ttc * P(TTC))            drive term, in [0, 1]
-            - w_jerk * min((jerk / 5.6)^2, jerk_cost_cap)          comfort, <= 0.08
+        r = (v / v_limit) * H(h) * (1 - w_ttc * P(TTC)) * C(jerk)   drive term, in [0, 1]
             - w_refused [G]  or  - w_lane_change [a lane change started]     <= 0.1
 
-    and ``-collision_penalty`` (20) on a collision or reversing step, so every step lies in
-    [-0.18, 1] or is exactly -20.
+    with the comfort gate C(jerk) = 1 - w_jerk * min((jerk / 5.6)^2, 1), and
+    ``-collision_penalty`` (20) on a collision or reversing step, so every step lies in
+    [-0.1, 1] or is exactly -20.
 
     - Efficiency v / v_limit (``obs.ego.speed_limit``), clipped to [0, 1]: speeding never pays.
     - Headway h = gap / v; H(h) = exp(-ln(h / h_d)^2 / (2 sigma^2)), the log-normal headway
@@ -376,16 +376,20 @@ class SafeReward:
     - TTC = gap / (v - v_leader) when closing in; P = 1 - TTC / 4 s below 4 s, growing to 1 as
       TTC -> 0: the share of the drive term lost (a gate, not a subtraction, so the penalty keeps
       the step >= 0; see (a)).
-    - Comfort: a smooth quadratic jerk cost, (jerk / 5.6)^2 = 1 at the paper's threshold, costs
-      0.02 there: no cliff for exploration noise to trip.
+    - Comfort: a smooth quadratic gate on jerk, (jerk / 5.6)^2 = 1 at the paper's threshold,
+      where the step keeps 1 - w_jerk = 50 % of its drive term; no cliff for exploration noise to
+      trip, and a cost in proportion to what the step earns, so a chattering (bang-bang)
+      controller loses half its reward whatever its speed. An earlier additive cost of 0.02 at
+      5.6 m/s^3 was cheap enough that DDPG learned a chattering tailgater (79 % of jerk samples
+      above 5.6 m/s^3 in a greedy evaluation): the gate is the fix.
 
     (a) Crashing never pays. Normal driving is >= 0 per step; the only negative collision-free
-    terms are jerk and lane-change costs, at most c = 0.02 * 4 + 0.1 = 0.18 per step. Even the
-    worst collision-free future is worth >= -c / (1 - gamma) = -0.18 / 0.01 = -18 at
-    gamma = 0.99, above the -20 of crashing now: at no state is a crash (or any episode end)
-    better than going on. `min_collision_penalty(gamma)` gives the bound for other gammas.
+    terms are lane-change costs, at most c = 0.1 per step. Even the worst collision-free future
+    is worth >= -c / (1 - gamma) = -0.1 / 0.01 = -10 at gamma = 0.99, above the -20 of crashing
+    now: at no state is a crash (or any episode end) better than going on.
+    `min_collision_penalty(gamma)` gives the bound for other gammas.
     Full throttle (3 m/s^2) from 15 m/s, 30 m behind a 15 m/s leader (see the test
-    test_safe_full_throttle_crash_is_worse_than_following): the crash after 5.4 s returns 6.5 at
+    test_safe_full_throttle_crash_is_worse_than_following): the crash after 5.4 s returns 6.2 at
     gamma = 0.99 (the headway and TTC gates take the drive term to 0 while closing in, then
     -20 * 0.99^53 = -11.7), against 67.3 for following at 15 m/s; under r_a3 the same runs
     return 26.9 and 37.4, so there the crash earns 72 % of the follower's return.
@@ -401,10 +405,8 @@ class SafeReward:
     """s: TTC below this costs part of the drive term."""
     ttc_weight: float = 1.0
     """Share of the drive term lost as TTC -> 0, in [0, 1]."""
-    jerk_weight: float = 0.02
-    """Cost at |jerk| = 5.6 m/s^3."""
-    jerk_cost_cap: float = 4.0
-    """Cap of (jerk / 5.6)^2 (4 = at twice the threshold), so each step stays bounded."""
+    jerk_weight: float = 0.5
+    """Share of the drive term lost at |jerk| >= 5.6 m/s^3 (quadratic below), in [0, 1]."""
     refused_weight: float = 0.1
     """Cost of a lane change refused for a too small gap (G)."""
     lane_change_weight: float = 0.01
@@ -421,9 +423,10 @@ class SafeReward:
             raise ValueError("headway_far_sigma and ttc_threshold must be positive")
         if not 0.0 <= self.ttc_weight <= 1.0:
             raise ValueError(f"ttc_weight must be within [0, 1], got {self.ttc_weight}")
-        costs = (self.jerk_weight, self.jerk_cost_cap, self.refused_weight)
-        if min((*costs, self.lane_change_weight, self.collision_penalty)) < 0.0:
-            raise ValueError("weights, caps and the collision penalty must be non-negative")
+        if not 0.0 <= self.jerk_weight <= 1.0:
+            raise ValueError(f"jerk_weight must be within [0, 1], got {self.jerk_weight}")
+        if min(self.refused_weight, self.lane_change_weight, self.collision_penalty) < 0.0:
+            raise ValueError("lane-change weights and the collision penalty must be non-negative")
 
     def __call__(self, prev: Observation | None, obs: Observation, dt: float) -> float:
         if is_collision(obs) or obs.ego.speed < REVERSE_SPEED:
@@ -431,14 +434,13 @@ class SafeReward:
         limit = obs.ego.speed_limit if obs.ego.speed_limit > 0.0 else self.fallback_speed_limit
         efficiency = min(max(obs.ego.speed / limit, 0.0), 1.0)
         drive = efficiency * self.headway_score(obs) * (1.0 - self.ttc_weight * self.ttc_cost(obs))
-        relative_jerk = min(abs(jerk(prev, obs, dt)) / JERK_LIMIT, math.sqrt(self.jerk_cost_cap))
-        comfort = self.jerk_weight * relative_jerk**2
+        comfort = 1.0 - self.jerk_weight * min((jerk(prev, obs, dt) / JERK_LIMIT) ** 2, 1.0)
         lane = 0.0
         if obs.action.lane_change_refused == GAP_TOO_SMALL:
             lane = self.refused_weight
         elif obs.events.lane_change_started:
             lane = self.lane_change_weight
-        return drive - comfort - lane
+        return drive * comfort - lane
 
     def headway_score(self, obs: Observation) -> float:
         """H in [0, 1]: 1 at h_d, with no leader, or standing still; 0 when overlapping."""
@@ -467,10 +469,7 @@ class SafeReward:
 
     def worst_step(self) -> float:
         """Lowest reward of a collision-free step (<= 0)."""
-        return -(
-            self.jerk_weight * self.jerk_cost_cap
-            + max(self.refused_weight, self.lane_change_weight)
-        )
+        return -max(self.refused_weight, self.lane_change_weight)
 
     def min_collision_penalty(self, gamma: float) -> float:
         """Penalty above which a crash is worse than the worst collision-free future."""

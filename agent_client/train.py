@@ -1,0 +1,397 @@
+"""The training loop of the paper's Fig. 1: read the state, score the last action, learn, act.
+
+One process, one remote simulator: every step the learner receives the recognition state from
+the server, computes the reward of its last action from it, stores the transition, runs its
+gradient updates and sends the next command. Greedy evaluations on held-out seeds judge the policy
+against the IDM baseline and the leader-at-entry ceiling; checkpoints make a run resumable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from agent_client.checkpoint import load_checkpoint, save_checkpoint
+from agent_client.config import TrainConfig
+from agent_client.ddpg import Agent
+from agent_client.drive import aggregate, run_episode
+from agent_client.features import FeatureMap
+from agent_client.idm import IDMDriver
+from agent_client.metrics import EpisodeRecorder, EpisodeSummary
+from agent_client.policy import LANE_COMMANDS, ActionScale, PolicyDriver, save_policy
+from agent_client.remote_env import RemoteEnv
+from agent_client.rewards import q_upper_bound
+from agent_client.run_log import RunLog
+
+JERK_TARGET = 0.026
+"""Share of jerk samples above 5.6 m/s^3 allowed (the paper's Fig. 10 figure)."""
+HEADWAY_TARGET = 0.05
+"""Share of leader steps under 1 s time headway allowed."""
+CEILING_TARGET = 0.98
+"""Average speed required, as a share of the leader-at-entry ceiling."""
+
+
+class Reporter(Protocol):
+    """Where a run reports progress; the CLI draws a progress bar, tests stay quiet."""
+
+    def message(self, text: str) -> None:
+        """A line for the user."""
+
+    def episode(self, row: dict[str, Any]) -> None:
+        """Metrics of a finished training episode."""
+
+
+class QuietReporter:
+    """Reports nothing."""
+
+    def message(self, text: str) -> None:
+        pass
+
+    def episode(self, row: dict[str, Any]) -> None:
+        pass
+
+
+@dataclass
+class Progress:
+    """Counters that a checkpoint restores."""
+
+    episode: int = 0
+    global_step: int = 0
+    wall_time: float = 0.0
+    passed_in_a_row: int = 0
+    converged_episode: int | None = None
+    converged_time: float | None = None
+    best_score: float = -float("inf")
+    evaluations: list[dict[str, Any]] = field(default_factory=list)
+
+
+def targets_met(policy: dict[str, float], idm: dict[str, float]) -> dict[str, bool]:
+    """The benchmark's acceptance criteria for one greedy evaluation."""
+    return {
+        "no_collisions": policy["collisions_per_episode"] == 0,
+        "comfortable": policy["jerk_share_above_limit"] <= JERK_TARGET,
+        "safe_headway": policy["headway_share_below_1s"] <= HEADWAY_TARGET,
+        "as_fast_as_idm": policy["average_speed"] >= idm["average_speed"],
+        "near_ceiling": policy["speed_ratio_to_ceiling"] >= CEILING_TARGET,
+    }
+
+
+class Trainer:
+    """Owns the environment, the agent, the buffer and the run folder."""
+
+    def __init__(
+        self,
+        config: TrainConfig,
+        server: str,
+        out: Path,
+        timeout_s: float = 10.0,
+        reporter: Reporter | None = None,
+    ) -> None:
+        self.config = config
+        self.out = out
+        self.reporter: Reporter = reporter or QuietReporter()
+        self.say = self.reporter.message
+        torch.set_num_threads(config.torch_threads)
+        options = {"decision_interval": config.decision_interval, **config.scenario_options}
+        self.env = RemoteEnv(
+            server, config.scenario, reward=config.reward, timeout_s=timeout_s, **options
+        )
+        multi_lane = self._multi_lane()
+        features = config.features if config.features != "auto" else ("lc" if multi_lane else "cf")
+        lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
+        self.features = FeatureMap(features)
+        self.scale = ActionScale.from_schema(self.env.welcome.action)
+        self.agent = Agent(self.features.dim, 3 if lane_change else 1, config.ddpg, config.seed)
+        from agent_client.replay import ReplayBuffer
+
+        self.buffer = ReplayBuffer(config.ddpg.buffer_size, self.features.dim, config.seed)
+        self.rng = np.random.default_rng(config.seed)
+        self.idm = IDMDriver()
+        self.progress = Progress()
+        self.q_bound = q_upper_bound(config.reward, config.ddpg.gamma)
+        self.idm_eval: dict[str, float] | None = None
+        self._stop_requested = False
+
+    def _multi_lane(self) -> bool:
+        _, info = self.env.reset(seed=self.config.seed)
+        return bool(info["observation"].ego.lane_count > 1)
+
+    # ----------------------------------------------------------------------- public
+
+    def run(self, resume: bool = False) -> Progress:
+        """Train until `episodes`, convergence (if asked) or a stop signal; always checkpoints."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        if resume:
+            self._restore()
+        else:
+            (self.out / "config.json").write_text(json.dumps(self.config.to_dict(), indent=2))
+        log = RunLog(self.out, resume=resume)
+        started = time.monotonic() - self.progress.wall_time
+        try:
+            with self._signals():
+                if self.idm_eval is None and self.config.eval_every > 0:
+                    self.say("evaluating the IDM baseline on the evaluation seeds")
+                    self.idm_eval = aggregate(self._evaluate(self.idm))
+                    (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
+                if self.config.pretrain_idm and self.progress.global_step == 0:
+                    self._pretrain()
+                while self.progress.episode < self.config.episodes and not self._stop_requested:
+                    summary, losses, q_mean = self._train_episode()
+                    if summary is None:
+                        break  # interrupted mid-episode: the episode restarts on resume
+                    self.progress.episode += 1
+                    self.progress.wall_time = time.monotonic() - started
+                    row = self._episode_row(summary, losses, q_mean)
+                    log.episode(row)
+                    self.reporter.episode(row)
+                    if self._evaluation_due():
+                        evaluation = self._evaluate_policy()
+                        log.evaluation(evaluation)
+                        self.say(evaluation_line(evaluation))
+                        if self._converged():
+                            break
+                    if self.progress.episode % self.config.checkpoint_every == 0:
+                        self._checkpoint()
+        finally:
+            self.progress.wall_time = time.monotonic() - started
+            self._checkpoint()
+            save_policy(self.out / "policy_final.pt", self.agent, self.features.name, self.scale)
+            if not (self.out / "policy.pt").exists():
+                save_policy(self.out / "policy.pt", self.agent, self.features.name, self.scale)
+            log.close()
+        return self.progress
+
+    def request_stop(self) -> None:
+        """Finish the current step, checkpoint and return from `run` (safe from handlers)."""
+        self._stop_requested = True
+
+    def close(self) -> None:
+        self.env.close()
+
+    # ----------------------------------------------------------------------- episodes
+
+    def _train_episode(self) -> tuple[EpisodeSummary | None, list[float], float]:
+        cfg = self.config
+        seed = cfg.seed + self.progress.episode
+        _, info = self.env.reset(seed=seed)
+        obs = info["observation"]
+        recorder = EpisodeRecorder(self.progress.episode, seed, self.env.step_length)
+        recorder.add(obs)
+        self.agent.reset_noise()
+        x = self.features(obs)
+        states: list[np.ndarray] = []
+        accelerations: list[float] = []
+        lanes: list[int] = []
+        losses: list[float] = []
+        while True:
+            if self._stop_requested:
+                return None, losses, 0.0
+            u, lane = self._act(obs, x)
+            action = {
+                "acceleration": np.array([self.scale.to_env(u)]),
+                "lane_change": LANE_COMMANDS[lane],
+            }
+            _, reward, terminated, truncated, info = self.env.step(action)
+            next_obs = info["observation"]
+            next_x = self.features(next_obs)
+            self.buffer.add(x, u, lane, reward, next_x, terminated)
+            states.append(x)
+            accelerations.append(u)
+            lanes.append(lane)
+            self.progress.global_step += 1
+            for _ in range(self.agent.updates_due(1)):
+                metrics = self.agent.update(self.buffer.sample(cfg.ddpg.batch_size))
+                losses.append(metrics["critic_loss"])
+            recorder.add(next_obs, reward)
+            obs, x = next_obs, next_x
+            if terminated or truncated:
+                break
+        q = self.agent.q_values(np.stack(states), np.array(accelerations))
+        q_mean = float(np.mean(np.take_along_axis(q, np.array(lanes)[:, None], axis=1)))
+        return recorder.summary(), losses, q_mean
+
+    def _act(self, obs: Any, x: np.ndarray) -> tuple[float, int]:
+        """Warm-up actions before learning starts, the noisy policy afterwards."""
+        cfg = self.config
+        fraction = min(1.0, self.progress.global_step / max(cfg.noise_decay_steps, 1))
+        self.agent.noise_scale = 1.0 + (cfg.noise_final - 1.0) * fraction
+        if self.progress.global_step >= cfg.ddpg.learning_starts:
+            return self.agent.act(x, explore=True)
+        if cfg.warmup_policy == "idm":
+            acceleration, _ = self.idm.act(obs)
+            u = self.scale.to_policy(acceleration) + self.rng.normal(0.0, cfg.ddpg.noise_sigma)
+            lane = (
+                int(self.rng.integers(self.agent.n_lane_actions)) if self.rng.random() < 0.05 else 0
+            )
+            return float(np.clip(u, -1.0, 1.0)), lane
+        return float(self.rng.uniform(-1.0, 1.0)), int(self.rng.integers(self.agent.n_lane_actions))
+
+    def _pretrain(self) -> None:
+        """Behaviour cloning on IDM's actions, then critic-only updates on that data."""
+        cfg = self.config
+        self.say(f"pre-training: {cfg.pretrain_episodes} IDM episodes through the bridge")
+        states, targets = [], []
+        for index in range(cfg.pretrain_episodes):
+            _, info = self.env.reset(seed=cfg.seed - 1 - index)
+            obs = info["observation"]
+            x = self.features(obs)
+            while True:
+                acceleration, _ = self.idm.act(obs)
+                u = self.scale.to_policy(acceleration)
+                step = {"acceleration": np.array([self.scale.to_env(u)]), "lane_change": 0}
+                _, reward, terminated, truncated, info = self.env.step(step)
+                next_obs = info["observation"]
+                next_x = self.features(next_obs)
+                self.buffer.add(x, u, 0, reward, next_x, terminated)
+                states.append(x)
+                targets.append(u)
+                obs, x = next_obs, next_x
+                if terminated or truncated:
+                    break
+        loss = self.agent.behaviour_clone(np.stack(states), np.array(targets), cfg.pretrain_epochs)
+        for _ in range(len(states)):
+            self.agent.update(self.buffer.sample(cfg.ddpg.batch_size), actor=False)
+        self.say(f"pre-training: actor fitted to {len(states)} IDM actions (MSE {loss:.4f})")
+
+    # ----------------------------------------------------------------------- evaluation
+
+    def _evaluate(self, driver: Any) -> list[EpisodeSummary]:
+        cfg = self.config
+        return [
+            run_episode(self.env, driver, cfg.eval_seed + index, index)
+            for index in range(cfg.eval_episodes)
+        ]
+
+    def _evaluation_due(self) -> bool:
+        every = self.config.eval_every
+        return every > 0 and self.progress.episode % every == 0
+
+    def _evaluate_policy(self) -> dict[str, Any]:
+        assert self.idm_eval is not None
+        driver = PolicyDriver(self.agent.policy(), self.features, self.scale)
+        result = aggregate(self._evaluate(driver))
+        met = targets_met(result, self.idm_eval)
+        progress = self.progress
+        progress.passed_in_a_row = progress.passed_in_a_row + 1 if all(met.values()) else 0
+        score = sum(met.values()) + result["speed_ratio_to_ceiling"]
+        if score >= progress.best_score:
+            progress.best_score = score
+            save_policy(self.out / "policy.pt", self.agent, self.features.name, self.scale)
+        evaluation = {
+            "episode": progress.episode,
+            "global_step": progress.global_step,
+            "wall_time": progress.wall_time,
+            **result,
+            "speed_ratio_to_idm": result["average_speed"] / self.idm_eval["average_speed"],
+            **{f"target_{name}": passed for name, passed in met.items()},
+            "passed_in_a_row": progress.passed_in_a_row,
+        }
+        progress.evaluations.append(evaluation)
+        return evaluation
+
+    def _converged(self) -> bool:
+        progress = self.progress
+        if progress.passed_in_a_row < self.config.converged_evals:
+            return False
+        if progress.converged_episode is None:
+            progress.converged_episode = progress.episode
+            progress.converged_time = progress.wall_time
+            self.say(
+                f"converged: {self.config.converged_evals} passing evaluations in a row at "
+                f"episode {progress.episode} ({progress.wall_time / 60:.1f} min)"
+            )
+        return self.config.stop_when_converged
+
+    # ----------------------------------------------------------------------- bookkeeping
+
+    def _episode_row(
+        self, summary: EpisodeSummary, losses: list[float], q_mean: float
+    ) -> dict[str, Any]:
+        return {
+            "episode": self.progress.episode,
+            "global_step": self.progress.global_step,
+            "wall_time": round(self.progress.wall_time, 2),
+            **{k: v for k, v in summary.to_dict().items() if k != "episode"},
+            "critic_loss": float(np.mean(losses)) if losses else float("nan"),
+            "q_mean": q_mean,
+            "q_upper_bound": self.q_bound,
+            "noise_scale": self.agent.noise_scale,
+        }
+
+    def _checkpoint(self) -> None:
+        state = {
+            "agent": self.agent.state_dict(),
+            "buffer": self.buffer.state_dict(),
+            "rng": _generator_state(self.rng),
+            "progress": _plain(dataclasses.asdict(self.progress)),
+            "idm_eval": self.idm_eval,
+            "config": self.config.to_dict(),
+        }
+        save_checkpoint(self.out / "checkpoint.pt", state)
+
+    def _restore(self) -> None:
+        state = load_checkpoint(self.out / "checkpoint.pt")
+        self.agent.load_state_dict(state["agent"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.rng.bit_generator.state = state["rng"]
+        self.progress = Progress(**state["progress"])
+        self.idm_eval = state["idm_eval"]
+        self.say(
+            f"resumed {self.out} at episode {self.progress.episode}, "
+            f"step {self.progress.global_step}, {len(self.buffer)} transitions in the buffer"
+        )
+
+    @contextmanager
+    def _signals(self) -> Iterator[None]:
+        """Ctrl-C and SIGTERM finish the current step, then checkpoint and return."""
+
+        def on_signal(signum: int, frame: FrameType | None) -> None:
+            self.request_stop()
+
+        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+
+
+def _generator_state(rng: np.random.Generator) -> dict[str, Any]:
+    return _plain(rng.bit_generator.state)  # type: ignore[no-any-return]
+
+
+def _plain(value: Any) -> Any:
+    """Numbers, strings, lists and dicts only (safe for torch.load(weights_only=True))."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def evaluation_line(evaluation: dict[str, Any]) -> str:
+    passed = [
+        k.removeprefix("target_") for k, v in evaluation.items() if k.startswith("target_") and v
+    ]
+    return (
+        f"  eval @ {evaluation['episode']}: speed {evaluation['average_speed']:.2f} m/s "
+        f"({evaluation['speed_ratio_to_idm']:.3f}x IDM, "
+        f"{evaluation['speed_ratio_to_ceiling']:.3f}x ceiling), "
+        f"collisions/ep {evaluation['collisions_per_episode']:.2f}, "
+        f"jerk>5.6 {100 * evaluation['jerk_share_above_limit']:.2f}%, "
+        f"headway<1s {100 * evaluation['headway_share_below_1s']:.2f}% | "
+        f"passed: {', '.join(passed) or 'none'} | in a row: {evaluation['passed_in_a_row']}"
+    )

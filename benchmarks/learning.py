@@ -1,0 +1,189 @@
+"""How fast does the learner reach the targets on `cf` (or `cflc`)? Prints a table, writes JSON.
+
+For each reward and training seed: start a real SUMO server on a free loopback port, train from
+scratch with the recommended configuration (plus any --set), evaluate greedily every
+`eval_every` episodes on `eval_episodes` held-out seeds, and stop at three passing evaluations
+in a row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of leader steps under
+1 s headway, speed >= IDM and >= 98 % of the leader-at-entry ceiling) or at the time budget.
+
+    python benchmarks/learning.py --rewards safe ra3 --seeds 0 1 2 --minutes 15
+
+This is a measurement, not a test: it takes minutes per run and prints what it measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from agent_client.config import TrainConfig, apply_overrides, parse_assignment  # noqa: E402
+from agent_client.train import QuietReporter, Trainer  # noqa: E402
+
+
+def start_server() -> tuple[subprocess.Popen[str], str]:
+    command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
+               "--log-level", "WARNING"]  # fmt: skip
+    server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert server.stdout is not None
+    line = server.stdout.readline()  # the readiness line; the server prints nothing before it
+    if not line.startswith("listening on "):
+        server.kill()
+        raise RuntimeError(f"sim-server did not start: {line!r}")
+    return server, line.removeprefix("listening on ").strip()
+
+
+class Deadline(QuietReporter):
+    """Stops a run at its time budget (checked after every episode)."""
+
+    def __init__(self, trainer_ref: list[Trainer], minutes: float, verbose: bool) -> None:
+        self.trainer_ref = trainer_ref
+        self.end = time.monotonic() + 60 * minutes
+        self.verbose = verbose
+
+    def message(self, text: str) -> None:
+        if self.verbose:
+            print(f"    {text}", flush=True)
+
+    def episode(self, row: dict[str, Any]) -> None:
+        if time.monotonic() > self.end and self.trainer_ref:
+            self.trainer_ref[0].request_stop()
+
+
+def run_one(config: TrainConfig, out: Path, minutes: float, verbose: bool) -> dict[str, Any]:
+    server, address = start_server()
+    holder: list[Trainer] = []
+    try:
+        trainer = Trainer(config, address, out, reporter=Deadline(holder, minutes, verbose))
+        holder.append(trainer)
+        try:
+            progress = trainer.run()
+        finally:
+            trainer.close()
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+        if server.stdout is not None:
+            server.stdout.close()
+    evaluations = progress.evaluations
+    last = evaluations[-1] if evaluations else {}
+    return {
+        "reward": config.reward,
+        "seed": config.seed,
+        "converged": progress.converged_episode is not None,
+        "episodes_to_converge": progress.converged_episode,
+        "minutes_to_converge": (
+            None if progress.converged_time is None else progress.converged_time / 60
+        ),
+        "episodes_run": progress.episode,
+        "minutes_run": progress.wall_time / 60,
+        "steps_run": progress.global_step,
+        "last_evaluation": last,
+        "evaluations": evaluations,
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="cf")
+    parser.add_argument("--rewards", nargs="+", default=["safe", "ra3"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--minutes", type=float, default=15.0, help="time budget per run")
+    parser.add_argument("--episodes", type=int, default=1000, help="episode cap per run")
+    parser.add_argument("--eval-episodes", type=int, default=20)
+    parser.add_argument("--eval-every", type=int, default=10)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmark")
+    parser.add_argument("--verbose", action="store_true")
+    args = parser.parse_args()
+
+    results = []
+    for reward in args.rewards:
+        for seed in args.seeds:
+            config = apply_overrides(
+                TrainConfig(),
+                {
+                    "scenario": args.scenario,
+                    "reward": reward,
+                    "seed": seed,
+                    "episodes": args.episodes,
+                    "eval_every": args.eval_every,
+                    "eval_episodes": args.eval_episodes,
+                    "stop_when_converged": True,
+                },
+            )
+            for assignment in args.set:
+                update = parse_assignment(assignment)
+                if "ddpg" in update:
+                    update = {"ddpg": {**config.ddpg.to_dict(), **update["ddpg"]}}
+                config = apply_overrides(config, update)
+            print(f"== {args.scenario} reward={reward} seed={seed}", flush=True)
+            result = run_one(config, args.out / f"{args.scenario}-{reward}-{seed}", args.minutes,
+                             args.verbose)  # fmt: skip
+            results.append(result)
+            print(f"   {summary_line(result)}", flush=True)
+
+    print()
+    print(table(results))
+    machine = f"{platform.node()} {platform.machine()}, {platform.python_version()}"
+    payload = {"scenario": args.scenario, "machine": machine, "settings": args.set,
+               "results": results}  # fmt: skip
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"learning-{args.scenario}.json").write_text(json.dumps(payload, indent=2))
+    print(f"\nwrote {args.out / f'learning-{args.scenario}.json'}")
+    return 0
+
+
+def summary_line(result: dict[str, Any]) -> str:
+    last = result["last_evaluation"]
+    state = (
+        f"converged at episode {result['episodes_to_converge']} "
+        f"({result['minutes_to_converge']:.1f} min)"
+        if result["converged"]
+        else f"not converged in {result['episodes_run']} episodes ({result['minutes_run']:.1f} min)"
+    )
+    if not last:
+        return state
+    return (
+        f"{state}; last evaluation: {last['collisions_per_episode']:.2f} collisions/ep, "
+        f"jerk>5.6 {100 * last['jerk_share_above_limit']:.2f}%, "
+        f"headway<1s {100 * last['headway_share_below_1s']:.2f}%, "
+        f"speed {last['speed_ratio_to_idm']:.3f}x IDM, "
+        f"{last['speed_ratio_to_ceiling']:.3f}x ceiling"
+    )
+
+
+def table(results: list[dict[str, Any]]) -> str:
+    lines = [
+        "| reward | seed | converged at (episode / min) | collisions/ep | jerk>5.6 | headway<1s "
+        "| speed / IDM | speed / ceiling |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in results:
+        last = r["last_evaluation"] or {}
+        converged = (
+            f"{r['episodes_to_converge']} / {r['minutes_to_converge']:.1f}"
+            if r["converged"]
+            else f"no ({r['episodes_run']} ep, {r['minutes_run']:.1f} min)"
+        )
+        lines.append(
+            f"| {r['reward']} | {r['seed']} | {converged} "
+            f"| {last.get('collisions_per_episode', float('nan')):.2f} "
+            f"| {100 * last.get('jerk_share_above_limit', float('nan')):.2f}% "
+            f"| {100 * last.get('headway_share_below_1s', float('nan')):.2f}% "
+            f"| {last.get('speed_ratio_to_idm', float('nan')):.3f} "
+            f"| {last.get('speed_ratio_to_ceiling', float('nan')):.3f} |"
+        )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

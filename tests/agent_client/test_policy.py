@@ -1,0 +1,36 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent_client.ddpg import Agent
+from agent_client.features import FeatureMap
+from agent_client.policy import ActionScale, load_policy_driver, save_policy
+from protocol.messages import ActionSchema
+from tests.protocol.test_codec import make_observation
+
+
+def test_action_scale_maps_tanh_onto_asymmetric_bounds() -> None:
+    scale = ActionScale.from_schema(ActionSchema(-6.0, 3.0))
+    assert scale.to_env(-1.0) == -6.0
+    assert scale.to_env(1.0) == 3.0
+    assert scale.to_env(0.0) == -1.5
+    for a in (-6.0, -2.0, 0.0, 2.5, 3.0):
+        assert scale.to_env(scale.to_policy(a)) == pytest.approx(a)
+    assert scale.to_policy(10.0) == 1.0
+
+
+def test_a_saved_policy_drives_like_the_agent(tmp_path: Path) -> None:
+    features = FeatureMap("lc")
+    agent = Agent(features.dim, 3, seed=3)
+    scale = ActionScale(-6.0, 3.0)
+    save_policy(tmp_path / "policy.pt", agent, "lc", scale)
+    driver = load_policy_driver(tmp_path / "policy.pt")
+    obs = make_observation()
+    acceleration, lane_change = driver.act(obs)
+    u, lane = agent.act(features(obs), explore=False)
+    assert acceleration == pytest.approx(scale.to_env(u))
+    assert lane_change == (0, 1, -1)[lane]
+    assert np.isfinite(acceleration)

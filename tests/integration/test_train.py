@@ -1,0 +1,169 @@
+"""The learner through a real SUMO server: it learns, it checkpoints, it resumes, its policy drives."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent_client.config import TrainConfig, apply_overrides
+from agent_client.policy import PolicyDriver
+from agent_client.run_log import read_rows
+from agent_client.train import Trainer
+from tests.conftest import RunningServer, sim_server
+
+pytestmark = [pytest.mark.sumo, pytest.mark.slow]
+
+# One-second decisions keep these runs short: ~130 decisions per episode.
+FAST = {
+    "decision_interval": 1.0,
+    "eval_every": 0,
+    "checkpoint_every": 1,
+    "ddpg": {"learning_starts": 300, "batch_size": 64, "updates_per_step": 2.0},
+}
+
+
+def fast_config(**changes: object) -> TrainConfig:
+    return apply_overrides(apply_overrides(TrainConfig(), FAST), dict(changes))
+
+
+def greedy_return(trainer: Trainer, seeds: range) -> float:
+    """Mean return of the current greedy policy on `seeds` (reward of the run)."""
+    from agent_client.drive import run_episode
+
+    driver = PolicyDriver(trainer.agent.policy(), trainer.features, trainer.scale)
+    return float(np.mean([run_episode(trainer.env, driver, s).total_reward for s in seeds]))
+
+
+def test_a_short_run_improves_on_its_untrained_start(
+    sumo_server: RunningServer, tmp_path: Path
+) -> None:
+    trainer = Trainer(fast_config(episodes=25, seed=1), sumo_server.address, tmp_path / "run")
+    try:
+        before = greedy_return(trainer, range(500, 505))
+        trainer.run()
+        after = greedy_return(trainer, range(500, 505))
+    finally:
+        trainer.close()
+    assert after > before + 5.0, (before, after)
+    rows = read_rows(tmp_path / "run" / "episodes.csv")
+    assert [int(r["episode"]) for r in rows] == list(range(1, 26))
+    assert all(float(r["q_upper_bound"]) == pytest.approx(100.0) for r in rows)  # safe: 1/(1-0.99)
+
+
+def train_command(server: str, out: Path, *extra: str) -> list[str]:
+    return [
+        sys.executable, "-m", "agent_client.cli", "train", "--server", server, "--out", str(out),
+        "--quiet", "--decision-interval", "1.0", "--set", "eval_every=0",
+        "--set", "checkpoint_every=1", "--set", "ddpg.learning_starts=200",
+        "--set", "ddpg.batch_size=64", *extra,
+    ]  # fmt: skip
+
+
+def wait_for_episodes(path: Path, count: int, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.exists() and len(read_rows(path)) >= count:
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"{path} did not reach {count} episodes within {timeout_s} s")
+
+
+def test_sigterm_checkpoints_and_resume_continues(
+    sumo_server: RunningServer, tmp_path: Path
+) -> None:
+    out = tmp_path / "run"
+    process = subprocess.Popen(
+        train_command(sumo_server.address, out, "--episodes", "8"),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        wait_for_episodes(out / "episodes.csv", 3, timeout_s=240)
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 0, stderr
+    interrupted = read_rows(out / "episodes.csv")
+    assert 3 <= len(interrupted) < 8
+    resumed = subprocess.run(
+        train_command(sumo_server.address, out, "--resume", str(out)),
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+    rows = read_rows(out / "episodes.csv")
+    assert [int(r["episode"]) for r in rows] == list(range(1, 9))
+    steps = [int(r["global_step"]) for r in rows]
+    assert steps == sorted(steps) and len(set(steps)) == len(steps)
+    # Nothing lost: the resumed part continues the counters of the interrupted part.
+    assert int(rows[len(interrupted)]["global_step"]) > int(interrupted[-1]["global_step"])
+
+
+def test_sigkill_loses_at_most_the_episodes_since_the_last_checkpoint(
+    scenario_cache: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "run"
+    # Its own server: the killed client never says goodbye, so the session stays taken until
+    # the server's session timeout.
+    with sim_server(
+        "--backend", "sumo", "--session-timeout", "2", cache_dir=scenario_cache
+    ) as server:
+        process = subprocess.Popen(
+            train_command(server.address, out, "--episodes", "50"),
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            wait_for_episodes(out / "episodes.csv", 3, timeout_s=240)
+            process.kill()
+            process.wait(timeout=30)
+        finally:
+            if process.poll() is None:
+                process.kill()
+    from agent_client.checkpoint import load_checkpoint
+
+    state = load_checkpoint(out / "checkpoint.pt")
+    logged = len(read_rows(out / "episodes.csv"))
+    assert logged - 1 <= state["progress"]["episode"] <= logged
+
+
+def test_the_saved_policy_reloads_and_drives(sumo_server: RunningServer, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    trained = subprocess.run(
+        train_command(sumo_server.address, out, "--episodes", "2"),
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr
+    assert (out / "training.png").stat().st_size > 10_000
+    assert json.loads((out / "config.json").read_text())["decision_interval"] == 1.0
+    driven = subprocess.run(
+        [sys.executable, "-m", "agent_client.cli", "drive", "--server", sumo_server.address,
+         "--policy", str(out / "policy.pt"), "--episodes", "1", "--json",
+         "--option", "decision_interval=1.0"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert driven.returncode == 0, driven.stderr
+    episode = json.loads(driven.stdout.splitlines()[0])
+    assert episode["steps"] > 0
+
+
+def test_lane_changing_training_runs_on_cflc(sumo_server: RunningServer, tmp_path: Path) -> None:
+    trainer = Trainer(
+        fast_config(scenario="cflc", episodes=2, reward="rlc"), sumo_server.address, tmp_path
+    )
+    try:
+        assert trainer.agent.n_lane_actions == 3
+        assert trainer.features.name == "lc"
+        trainer.run()
+    finally:
+        trainer.close()
+    rows = read_rows(tmp_path / "episodes.csv")
+    assert len(rows) == 2
+    assert sum(int(r["lane_changes_started"]) + int(r["lane_changes_refused"]) for r in rows) > 0
