@@ -197,9 +197,10 @@ class AppliedAction:
     """The action as requested and as applied, with the reasons for any difference.
 
     `acceleration_limited_by` is "" (applied as asked), "bounds" (clipped to the action schema),
-    "speed_limit" (reduced to keep the road's speed limit) or "standstill" (raised so that the
-    speed does not go below zero). `lane_change_refused` is "" or "gap_too_small", "no_lane",
-    "in_progress".
+    "speed_limit" (reduced to keep the road's speed limit), "standstill" (raised so that the
+    speed does not go below zero) or "simulator" (the simulator drives the ego: option
+    ``ego_driver = "sumo"``). `lane_change_refused` is "" or "gap_too_small", "no_lane",
+    "in_progress", "simulator_drives".
     """
 
     requested_acceleration: float

@@ -27,6 +27,7 @@ from sim_server.backend import BackendError
 EGO_ID = "ego"
 EGO_TYPE = "ego"
 EGO_ROUTE = "ego_route"
+HUMAN_TYPE = "human"
 
 COMMON_OPTIONS: dict[str, OptionValue] = {
     "decision_interval": 0.1,
@@ -37,6 +38,7 @@ COMMON_OPTIONS: dict[str, OptionValue] = {
     "stop_gap": 15.0,
     "stop_patience": 2.0,
     "report_ceiling": True,
+    "ego_driver": "agent",
 }
 """Options every scenario accepts (seconds, m/s, m); see docs/protocol.md."""
 
@@ -207,7 +209,7 @@ def _routes(scenario: RoadScenario, traffic: dict[str, OptionValue]) -> str:
     )
     return (
         "<routes>\n"
-        f'    <vType id="human" vClass="passenger" carFollowModel="Krauss" sigma="{sigma}" '
+        f'    <vType id="{HUMAN_TYPE}" vClass="passenger" carFollowModel="Krauss" sigma="{sigma}" '
         f'speedFactor="normc({mean},{dev},0.5,1.5)" lcModel="LC2013"/>\n'
         f'    <vType id="{EGO_TYPE}" vClass="passenger" accel="3" decel="6" emergencyDecel="9" '
         'sigma="0" speedFactor="1" speedDev="0" color="0,0,1"/>\n'
@@ -255,5 +257,7 @@ def check_options(options: dict[str, OptionValue]) -> None:
             raise BackendError(ErrorCode.INVALID_OPTION, f"option {name} must be >= 0")
     if "sigma" in options and not 0 <= float(options["sigma"]) <= 1:  # type: ignore[arg-type]
         raise BackendError(ErrorCode.INVALID_OPTION, "option sigma must be within [0, 1]")
+    if options.get("ego_driver", "agent") not in ("agent", "sumo"):
+        raise BackendError(ErrorCode.INVALID_OPTION, "option ego_driver must be agent or sumo")
     if "flow" in options and float(options["flow"]) > 3600:  # type: ignore[arg-type]
         raise BackendError(ErrorCode.INVALID_OPTION, "option flow must be <= 3600 veh/h/lane")

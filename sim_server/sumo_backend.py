@@ -36,6 +36,7 @@ from sim_server.scenarios import (
     EGO_ID,
     EGO_ROUTE,
     EGO_TYPE,
+    HUMAN_TYPE,
     CustomScenario,
     RoadScenario,
     Scenario,
@@ -77,6 +78,7 @@ class _Episode:
     leader_id: str
     leader_depart: float
     leader_arrival: float | None = None
+    sumo_drives: bool = False
     lane_change_target: int | None = None
     stopped_since: float | None = None
     done: bool = False
@@ -161,14 +163,21 @@ class SumoBackend(Backend):
                 f"decision_interval {interval} s is not a multiple of the step length {dt} s",
             )
         libsumo.simulationStep(libsumo.simulation.getTime() + float(options["warmup"]))  # type: ignore[arg-type]
-        if EGO_TYPE not in libsumo.vehicletype.getIDList():
-            self._define_ego_type()
+        sumo_drives = options["ego_driver"] == "sumo"
+        types = libsumo.vehicletype.getIDList()
+        if sumo_drives:  # a human driver of the scenario, driven by SUMO, observed by the client
+            type_id = HUMAN_TYPE if HUMAN_TYPE in types else "DEFAULT_VEHTYPE"
+        else:
+            type_id = EGO_TYPE
+            if EGO_TYPE not in types:
+                self._define_ego_type()
         libsumo.vehicle.add(
-            EGO_ID, route, typeID=EGO_TYPE, depart="now",
+            EGO_ID, route, typeID=type_id, depart="now",
             departLane="random", departPos="base", departSpeed="max",
         )  # fmt: skip
-        libsumo.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
-        libsumo.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
+        if not sumo_drives:
+            libsumo.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
+            libsumo.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
         deadline = libsumo.simulation.getTime() + float(options["insertion_timeout"])  # type: ignore[arg-type]
         while EGO_ID not in libsumo.simulation.getDepartedIDList():
             if libsumo.simulation.getTime() >= deadline:
@@ -191,6 +200,7 @@ class SumoBackend(Backend):
             route_length=route_length,
             leader_id=leader_id,
             leader_depart=libsumo.vehicle.getDeparture(leader_id) if leader_id else math.nan,
+            sumo_drives=sumo_drives,
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
         return self._observe(self._episode, 0, Events(), action)
@@ -222,7 +232,10 @@ class SumoBackend(Backend):
 
     def _step(self, episode: _Episode, seq: int, request: float, lane_change: int) -> Observation:
         started = False
-        refused = self._lane_change_refusal(episode, lane_change) if lane_change else ""
+        if episode.sumo_drives:
+            refused = "simulator_drives" if lane_change else ""
+        else:
+            refused = self._lane_change_refusal(episode, lane_change) if lane_change else ""
         if lane_change and not refused:
             target = libsumo.vehicle.getLaneIndex(EGO_ID) + lane_change
             libsumo.vehicle.changeLane(EGO_ID, target, 2.0)
@@ -234,11 +247,17 @@ class SumoBackend(Backend):
         collision_with, end_of_road, completed, teleported = "", False, False, False
         substeps_done = 0
         for _ in range(episode.substeps):
-            speed = libsumo.vehicle.getSpeed(EGO_ID)
-            limit = libsumo.vehicle.getAllowedSpeed(EGO_ID)
-            applied, why = _limit_acceleration(request, speed, limit, low, high, episode.dt)
-            libsumo.vehicle.setAcceleration(EGO_ID, applied, episode.dt)
-            libsumo.simulationStep()
+            if episode.sumo_drives:
+                libsumo.simulationStep()
+                gone = EGO_ID in libsumo.simulation.getArrivedIDList()
+                applied = 0.0 if gone else libsumo.vehicle.getAcceleration(EGO_ID)
+                why = "simulator"
+            else:
+                speed = libsumo.vehicle.getSpeed(EGO_ID)
+                limit = libsumo.vehicle.getAllowedSpeed(EGO_ID)
+                applied, why = _limit_acceleration(request, speed, limit, low, high, episode.dt)
+                libsumo.vehicle.setAcceleration(EGO_ID, applied, episode.dt)
+                libsumo.simulationStep()
             applied_total += applied
             limited_by = limited_by or why
             substeps_done += 1

@@ -202,6 +202,18 @@ def test_insertion_is_bounded_and_reported(backend: SumoBackend) -> None:
     assert backend.reset("cf", 1, options(backend, "cf")).seq == 0  # and the next reset works
 
 
+def test_sumo_can_drive_the_ego_for_recording_human_trajectories(backend: SumoBackend) -> None:
+    first = backend.reset("cf", 16, options(backend, "cf", ego_driver="sumo"))
+    stream = run(backend, first, [(3.0, 1)] * 3000)  # requests are ignored
+    assert stream[-1].reason == "end_of_road"
+    assert not any(o.events.collision for o in stream)
+    assert all(o.action.acceleration_limited_by == "simulator" for o in stream[1:])
+    assert stream[5].action.lane_change_refused == "simulator_drives"
+    assert max(abs(o.ego.acceleration - o.action.acceleration) for o in stream[1:-1]) < 1e-9
+    # A human driver, not the agent's full throttle: it follows its leader.
+    assert min(o.neighbours.leader.gap for o in stream if o.neighbours.leader.present) > 0.5
+
+
 def test_a_users_own_sumocfg_is_a_scenario(backend: SumoBackend, tmp_path: Path) -> None:
     backend.reset("cf", 1, options(backend, "cf"))  # builds the cf files
     built = next(Path(backend._cache_dir).glob("cf-*/cf.sumocfg"))
