@@ -23,6 +23,10 @@ from typing import Any
 
 from agent_client.ddpg import DDPGConfig
 
+RECOMMENDED_DDPG = DDPGConfig(gamma=0.98, noise="ou", max_grad_norm=1.0)
+"""The configuration the learning benchmark measured (docs/learner.md): DDPG with a 5 s horizon
+(gamma 0.98 at 0.1 s decisions), temporally correlated exploration and gradient clipping."""
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -68,10 +72,13 @@ class TrainConfig:
     """Consecutive passing evaluations that count as converged."""
     checkpoint_every: int = 10
     """Write a checkpoint every N episodes (and on Ctrl-C / SIGTERM)."""
+    deploy_averaged: bool = True
+    """Evaluate and save the target (Polyak-averaged) networks: a smoothed policy that does
+    not jump with every gradient step."""
     torch_threads: int = 1
     """torch intra-op threads (1 is fastest for small networks on a shared CPU)."""
-    ddpg: DDPGConfig = field(default_factory=DDPGConfig)
-    """Learner hyper-parameters."""
+    ddpg: DDPGConfig = field(default_factory=lambda: RECOMMENDED_DDPG)
+    """Learner hyper-parameters (default: `RECOMMENDED_DDPG`)."""
 
     def to_dict(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "ddpg"}

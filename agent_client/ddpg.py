@@ -549,22 +549,32 @@ class Agent:
         agent.load_state_dict(state)
         return agent
 
-    def policy_state_dict(self) -> dict[str, Any]:
-        """What a deployed greedy `Policy` needs: the actor, and critic 1 if lanes are chosen."""
+    def policy_state_dict(self, averaged: bool = False) -> dict[str, Any]:
+        """What a deployed greedy `Policy` needs: the actor, and critic 1 if lanes are chosen.
+
+        ``averaged=True`` takes the target (Polyak-averaged) networks instead of the online ones.
+        """
+        actor, critic = self._deployed(averaged)
         state: dict[str, Any] = {
             "format": _POLICY_FORMAT,
             "version": _FORMAT_VERSION,
             "obs_dim": self.obs_dim,
             "n_lane_actions": self.n_lane_actions,
             "hidden_sizes": list(self.config.hidden_sizes),
-            "actor": self.actor.state_dict(),
+            "actor": actor.state_dict(),
         }
         if self.n_lane_actions > 1:
-            state["critic"] = self.critics[0].state_dict()
+            state["critic"] = critic.state_dict()
         return state
 
-    def policy(self) -> Policy:
-        """A greedy `Policy` sharing this agent's networks (no copy)."""
-        critic = self.critics[0] if self.n_lane_actions > 1 else None
-        assert critic is None or isinstance(critic, Critic)
-        return Policy(self.actor, critic, self.obs_dim, self.n_lane_actions)
+    def policy(self, averaged: bool = False) -> Policy:
+        """A greedy `Policy` sharing this agent's (online or target) networks, no copy."""
+        actor, critic = self._deployed(averaged)
+        return Policy(actor, critic if self.n_lane_actions > 1 else None, self.obs_dim,
+                      self.n_lane_actions)  # fmt: skip
+
+    def _deployed(self, averaged: bool) -> tuple[Actor, Critic]:
+        actor = self.actor_target if averaged else self.actor
+        critic = (self.critic_targets if averaged else self.critics)[0]
+        assert isinstance(critic, Critic)
+        return actor, critic

@@ -53,10 +53,12 @@ class PolicyDriver:
         return self.scale.to_env(u), LANE_COMMANDS[lane]
 
 
-def save_policy(path: Path, agent: Agent, features: str, scale: ActionScale) -> None:
+def save_policy(
+    path: Path, agent: Agent, features: str, scale: ActionScale, averaged: bool = False
+) -> None:
     """Write the deployable part of an agent (no optimiser, no buffer)."""
     state: dict[str, Any] = {
-        "policy": agent.policy_state_dict(),
+        "policy": agent.policy_state_dict(averaged),
         "features": features,
         "acceleration_bounds": [scale.low, scale.high],
     }

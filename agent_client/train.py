@@ -40,6 +40,8 @@ HEADWAY_TARGET = 0.05
 """Share of leader steps under 1 s time headway allowed."""
 CEILING_TARGET = 0.98
 """Average speed required, as a share of the leader-at-entry ceiling."""
+PRETRAIN_SEED = 1_000_000
+"""First seed of the IDM pre-training episodes (disjoint from training and evaluation seeds)."""
 
 
 class Reporter(Protocol):
@@ -166,9 +168,9 @@ class Trainer:
         finally:
             self.progress.wall_time = time.monotonic() - started
             self._checkpoint()
-            save_policy(self.out / "policy_final.pt", self.agent, self.features.name, self.scale)
+            self._save_policy("policy_final.pt")
             if not (self.out / "policy.pt").exists():
-                save_policy(self.out / "policy.pt", self.agent, self.features.name, self.scale)
+                self._save_policy("policy.pt")
             log.close()
         return self.progress
 
@@ -243,7 +245,7 @@ class Trainer:
         self.say(f"pre-training: {cfg.pretrain_episodes} IDM episodes through the bridge")
         states, targets = [], []
         for index in range(cfg.pretrain_episodes):
-            _, info = self.env.reset(seed=cfg.seed - 1 - index)
+            _, info = self.env.reset(seed=PRETRAIN_SEED + 1000 * cfg.seed + index)
             obs = info["observation"]
             x = self.features(obs)
             while True:
@@ -279,7 +281,9 @@ class Trainer:
 
     def _evaluate_policy(self) -> dict[str, Any]:
         assert self.idm_eval is not None
-        driver = PolicyDriver(self.agent.policy(), self.features, self.scale)
+        driver = PolicyDriver(
+            self.agent.policy(self.config.deploy_averaged), self.features, self.scale
+        )
         result = aggregate(self._evaluate(driver))
         met = targets_met(result, self.idm_eval)
         progress = self.progress
@@ -287,7 +291,7 @@ class Trainer:
         score = sum(met.values()) + result["speed_ratio_to_ceiling"]
         if score >= progress.best_score:
             progress.best_score = score
-            save_policy(self.out / "policy.pt", self.agent, self.features.name, self.scale)
+            self._save_policy("policy.pt")
         evaluation = {
             "episode": progress.episode,
             "global_step": progress.global_step,
@@ -328,6 +332,11 @@ class Trainer:
             "q_upper_bound": self.q_bound,
             "noise_scale": self.agent.noise_scale,
         }
+
+    def _save_policy(self, name: str) -> None:
+        save_policy(
+            self.out / name, self.agent, self.features.name, self.scale, self.config.deploy_averaged
+        )
 
     def _checkpoint(self) -> None:
         state = {

@@ -382,7 +382,7 @@ class SumoBackend(Backend):
             lane=vehicle.getLaneIndex(EGO_ID),
             lane_count=self._lane_count(episode),
             position=episode.entry_offset + vehicle.getDistance(EGO_ID),
-            speed_limit=vehicle.getAllowedSpeed(EGO_ID),
+            speed_limit=libsumo.lane.getMaxSpeed(vehicle.getLaneID(EGO_ID)),
         )
         x, y = vehicle.getPosition(EGO_ID)
         heading = math.radians(vehicle.getAngle(EGO_ID))
