@@ -72,6 +72,14 @@ def build_parser() -> argparse.ArgumentParser:
     from agent_client.train_cli import add_train_parser
 
     add_train_parser(commands, add_connection_arguments)
+
+    from agent_client.evaluate_cli import add_evaluate_parsers
+
+    add_evaluate_parsers(commands, add_connection_arguments)
+
+    from agent_client.conformance_cli import add_check_parser
+
+    add_check_parser(commands)
     return parser
 
 

@@ -74,9 +74,12 @@ class Connection:
                 f"no reply from {self.address} within {deadline:.1f} s "
                 "(is sim-server running and reachable?)"
             )
-        data = socket.recv()
+        frames = socket.recv_multipart()
+        if len(frames) != 1:
+            self._drop_socket()
+            raise MalformedReply(f"reply from {self.address} has {len(frames)} frames, expected 1")
         try:
-            return decode_reply(data)  # type: ignore[return-value]
+            return decode_reply(frames[0])  # type: ignore[return-value]
         except ProtocolError as exc:
             self._drop_socket()
             raise MalformedReply(f"invalid reply from {self.address}: {exc}") from exc

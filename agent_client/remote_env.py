@@ -52,11 +52,11 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         try:
             self.welcome: Welcome = self._connection.hello(timeout_s)
             self.scenario_options = self._check_scenario()
+            self.flatten = self._check_schema()
         except Exception:
             self.close()  # free the server for the next client, then report
             raise
         self.step_length = next(s.step_length for s in self.welcome.scenarios if s.name == scenario)
-        self.flatten = Flattener(self.welcome.observation_fields)
         schema = self.welcome.action
         self.action_space = spaces.Dict(
             {
@@ -125,6 +125,19 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
                 f"known: {', '.join(known)}"
             )
         return {**known, **self.options}
+
+    def _check_schema(self) -> Flattener:
+        """The server's schemas must be usable: known fields, sensible action bounds."""
+        schema = self.welcome.action
+        if not schema.acceleration_min < schema.acceleration_max:
+            raise MalformedReply(
+                f"welcome from {self.address}: acceleration bounds "
+                f"[{schema.acceleration_min}, {schema.acceleration_max}] are empty"
+            )
+        try:
+            return Flattener(self.welcome.observation_fields)
+        except ValueError as exc:
+            raise MalformedReply(f"welcome from {self.address}: {exc}") from exc
 
     @property
     def last_observation(self) -> Observation | None:

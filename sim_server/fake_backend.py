@@ -24,6 +24,7 @@ from protocol.messages import (
     ScenarioInfo,
 )
 from sim_server.backend import Backend, BackendError
+from sim_server.scenarios import check_options
 
 DT = 0.1
 VEHICLE_LENGTH = 5.0
@@ -71,6 +72,10 @@ class FakeBackend(Backend):
         self._state: _State | None = None
 
     def reset(self, scenario: str, seed: int, options: dict[str, OptionValue]) -> Observation:
+        check_options(options)
+        for name in ("decision_interval", "max_episode_time", "length"):
+            if not float(options[name]) > 0:  # type: ignore[arg-type]
+                raise BackendError(ErrorCode.INVALID_OPTION, f"option {name} must be > 0")
         rng = random.Random(seed)
         speed = rng.uniform(10.0, 18.0)
         self._state = _State(

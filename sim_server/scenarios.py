@@ -247,8 +247,26 @@ _POSITIVE = ("decision_interval", "max_episode_time", "insertion_timeout", "spee
 _NON_NEGATIVE = ("warmup", "stop_speed", "stop_gap", "stop_patience", "flow", "speed_factor_dev")
 
 
+_UPPER_BOUNDS = {
+    "decision_interval": 60.0,
+    "max_episode_time": 86_400.0,
+    "warmup": 3600.0,
+    "insertion_timeout": 3600.0,
+    "stop_patience": 3600.0,
+    "stop_gap": 10_000.0,
+    "stop_speed": 100.0,
+    "speed_factor_mean": 3.0,
+    "speed_factor_dev": 3.0,
+    "length": 100_000.0,
+}
+"""Largest accepted values: an absurd option must be refused, not freeze the simulator."""
+
+
 def check_options(options: dict[str, OptionValue]) -> None:
     """Range checks on option values (names and types are checked by the server)."""
+    for name, upper in _UPPER_BOUNDS.items():
+        if name in options and not float(options[name]) <= upper:  # type: ignore[arg-type]
+            raise BackendError(ErrorCode.INVALID_OPTION, f"option {name} must be <= {upper:g}")
     for name in _POSITIVE:
         if name in options and not float(options[name]) > 0:  # type: ignore[arg-type]
             raise BackendError(ErrorCode.INVALID_OPTION, f"option {name} must be > 0")

@@ -7,6 +7,7 @@ import selectors
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -58,9 +59,9 @@ def sim_server(*args: str, cache_dir: Path | None = None) -> Iterator[RunningSer
     if cache_dir is not None:
         env["XDG_CACHE_HOME"] = str(cache_dir)
     command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0", *args]
-    process = subprocess.Popen(
-        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
-    )
+    # stderr goes to a file: an unread pipe fills up and blocks a chatty server.
+    log = tempfile.TemporaryFile(mode="w+")
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log, text=True, env=env)
     try:
         address = wait_for_line(process, "listening on ", READY_TIMEOUT_S)
         yield RunningServer(process, address)
@@ -72,9 +73,9 @@ def sim_server(*args: str, cache_dir: Path | None = None) -> Iterator[RunningSer
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait(timeout=10)
-        for stream in (process.stdout, process.stderr):
-            if stream is not None:
-                stream.close()
+        if process.stdout is not None:
+            process.stdout.close()
+        log.close()
 
 
 @pytest.fixture(scope="session")

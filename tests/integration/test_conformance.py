@@ -1,0 +1,75 @@
+"""``agent-client check`` against real server processes: the SUMO server and the fake backend."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from agent_client.conformance import PASS, run_checks
+from agent_client.connection import Connection
+from protocol.messages import Close, Hello, Observation, Reset
+from protocol.version import PROTOCOL_VERSION
+from tests.conftest import RunningServer, sim_server
+
+CHECKS = [
+    "handshake", "version_refusal", "schema", "reset", "step", "termination", "bad_requests",
+    "determinism", "close",
+]  # fmt: skip
+
+
+def assert_free(address: str) -> None:
+    """Another client can start an episode right away: the kit said goodbye."""
+    with Connection(address, timeout_s=30.0) as connection:
+        connection.request(Hello(PROTOCOL_VERSION))
+        assert isinstance(connection.request(Reset("cf", 1), timeout_s=120.0), Observation)
+        connection.request(Close())
+
+
+@pytest.mark.sumo
+def test_the_sumo_server_conforms(sumo_server: RunningServer) -> None:
+    for scenario in ("cf", "cflc"):
+        report = run_checks(sumo_server.address, scenario, timeout_s=30.0)
+        assert {r.name: r.status for r in report.results} == dict.fromkeys(CHECKS, PASS), (
+            report.format_table()
+        )
+    assert_free(sumo_server.address)
+    assert sumo_server.process.poll() is None
+
+
+@pytest.mark.sumo
+def test_check_command_against_the_sumo_server(sumo_server: RunningServer) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "agent_client.cli", "check", "--server", sumo_server.address,
+         "--json", "--timeout", "30"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads(result.stdout)
+    assert report["ok"] is True
+    assert report["scenario"] == "cf"  # the first one offered
+    assert [c["status"] for c in report["checks"]] == [PASS] * len(CHECKS)
+
+
+def test_the_fake_backend_conforms() -> None:
+    with sim_server("--backend", "fake") as server:
+        result = subprocess.run(
+            [sys.executable, "-m", "agent_client.cli", "check", "--server", server.address],
+            capture_output=True, text=True, timeout=120, check=False,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "CONFORMS - 9 passed, 0 warnings, 0 failed, 0 skipped" in result.stdout
+        assert_free(server.address)
+
+
+def test_check_command_reports_an_unreachable_server() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "agent_client.cli", "check", "--server", "tcp://127.0.0.1:1",
+         "--timeout", "0.5"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert result.returncode == 2
+    assert "no reply from tcp://127.0.0.1:1 within 0.5 s" in result.stderr
+    assert result.stdout == ""
