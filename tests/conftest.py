@@ -26,9 +26,6 @@ class RunningServer:
     process: subprocess.Popen[str]
     address: str
 
-    def stderr_text(self) -> str:
-        return self.process.stderr.read() if self.process.stderr else ""
-
 
 def wait_for_line(process: subprocess.Popen[str], prefix: str, timeout_s: float) -> str:
     """Read stdout until a line starting with `prefix` (the readiness signal), or fail."""
@@ -60,22 +57,21 @@ def sim_server(*args: str, cache_dir: Path | None = None) -> Iterator[RunningSer
         env["XDG_CACHE_HOME"] = str(cache_dir)
     command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0", *args]
     # stderr goes to a file: an unread pipe fills up and blocks a chatty server.
-    log = tempfile.TemporaryFile(mode="w+")
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log, text=True, env=env)
-    try:
-        address = wait_for_line(process, "listening on ", READY_TIMEOUT_S)
-        yield RunningServer(process, address)
-    finally:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(timeout=10)
-        if process.stdout is not None:
-            process.stdout.close()
-        log.close()
+    with tempfile.TemporaryFile(mode="w+") as log:
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log, text=True, env=env)
+        try:
+            address = wait_for_line(process, "listening on ", READY_TIMEOUT_S)
+            yield RunningServer(process, address)
+        finally:
+            if process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+                try:
+                    process.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait(timeout=10)
+            if process.stdout is not None:
+                process.stdout.close()
 
 
 @pytest.fixture(scope="session")
