@@ -6,7 +6,7 @@
 #      every target (or the episode cap),
 #   4. evaluate the trained policy against the calibrated IDM on the same seeds,
 # and print where the report is. Takes 5-20 minutes on 2 cores; shows progress throughout.
-# Environment: EPISODES (training cap, default 150), EVAL_EPISODES (default 20), OUT.
+# Environment: EPISODES (training cap, default 100), EVAL_EPISODES (default 20), OUT.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -33,7 +33,7 @@ agent-client calibrate-idm --server "$address" --scenario cf --out "$out/idm.jso
 
 echo "== 2/3 training DDPG (recommended configuration) on cf"
 agent-client train --server "$address" --scenario cf --out "$out/train" \
-    --episodes "${EPISODES:-150}" --stop-when-converged
+    --episodes "${EPISODES:-100}" --stop-when-converged
 
 echo "== 3/3 evaluating the trained policy against the calibrated IDM"
 agent-client evaluate --server "$address" --scenario cf --policy "$out/train/policy.pt" \
