@@ -20,6 +20,11 @@ class Driver(Protocol):
 
 def run_episode(env: RemoteEnv, driver: Driver, seed: int, episode: int = 0) -> EpisodeSummary:
     """Drive one episode from reset to its end; returns its summary."""
+    return record_episode(env, driver, seed, episode).summary()
+
+
+def record_episode(env: RemoteEnv, driver: Driver, seed: int, episode: int = 0) -> EpisodeRecorder:
+    """Drive one episode from reset to its end; returns every observation and reward."""
     _, info = env.reset(seed=seed)
     recorder = EpisodeRecorder(episode=episode, seed=seed, step_length=env.step_length)
     obs: Observation = info["observation"]
@@ -31,7 +36,7 @@ def run_episode(env: RemoteEnv, driver: Driver, seed: int, episode: int = 0) -> 
         obs = info["observation"]
         recorder.add(obs, reward)
         if terminated or truncated:
-            return recorder.summary()
+            return recorder
 
 
 def drive(

@@ -156,18 +156,9 @@ def record_episode(recorder: EpisodeRecorder) -> EpisodeRecord:
 
 def drive_recorded(env: Any, driver: Driver, seed: int, episode: int = 0) -> EpisodeRecord:
     """Drive one episode through a `RemoteEnv` and keep its record."""
-    _, info = env.reset(seed=seed)
-    recorder = EpisodeRecorder(episode=episode, seed=seed, step_length=env.step_length)
-    obs: Observation = info["observation"]
-    recorder.add(obs)
-    while True:
-        acceleration, lane_change = driver.act(obs)
-        action = {"acceleration": np.array([acceleration], np.float32), "lane_change": lane_change}
-        _, reward, terminated, truncated, info = env.step(action)
-        obs = info["observation"]
-        recorder.add(obs, reward)
-        if terminated or truncated:
-            return record_episode(recorder)
+    from agent_client.drive import record_episode as drive_episode
+
+    return record_episode(drive_episode(env, driver, seed, episode))
 
 
 def evaluate_driver(
