@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
 from agent_client import __version__
 from agent_client.connection import BridgeError
 from protocol.messages import OptionValue
+from protocol.security import CLIENT_SECRET_ENV, SERVER_KEY_ENV, ClientCredentials
 from protocol.transport import DEFAULT_ADDRESS
 
 
@@ -43,6 +45,33 @@ def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--timeout", type=float, default=10.0, help="seconds to wait for a step reply (default 10)"
     )
+
+
+def add_key_arguments(parser: argparse.ArgumentParser) -> None:
+    """CURVE keys of an authenticated server (see `sim-server keygen`)."""
+    parser.add_argument(
+        "--server-key",
+        type=Path,
+        default=os.environ.get(SERVER_KEY_ENV) or None,
+        help=f"the server's public key file (server.key); env {SERVER_KEY_ENV}",
+    )
+    parser.add_argument(
+        "--secret-key",
+        type=Path,
+        default=os.environ.get(CLIENT_SECRET_ENV) or None,
+        help=f"this learner's secret key file (client.key_secret); env {CLIENT_SECRET_ENV}",
+    )
+
+
+def use_keys(args: argparse.Namespace) -> None:
+    """Check the key files and make them the default of every connection of this process."""
+    if args.server_key is None and args.secret_key is None:
+        return
+    if args.server_key is None or args.secret_key is None:
+        raise ValueError("--server-key and --secret-key go together")
+    ClientCredentials.from_files(args.server_key, args.secret_key)  # fail early on bad files
+    os.environ[SERVER_KEY_ENV] = str(args.server_key.resolve())
+    os.environ[CLIENT_SECRET_ENV] = str(args.secret_key.resolve())
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,6 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
     from agent_client.conformance_cli import add_check_parser
 
     add_check_parser(commands)
+    for subcommand in commands.choices.values():
+        add_key_arguments(subcommand)
     return parser
 
 
@@ -135,7 +166,12 @@ def run_drive(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        use_keys(args)
+    except ValueError as exc:
+        parser.error(str(exc))
     try:
         return int(args.run(args))
     except BridgeError as exc:

@@ -36,6 +36,7 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.schema import NEIGHBOUR_SLOTS, Flattener
+from protocol.security import ClientCredentials
 from protocol.transport import connect_req, parse_endpoint
 from protocol.version import PROTOCOL_VERSION, format_version
 
@@ -146,7 +147,8 @@ class Probe:
     def send(self, frame: bytes, timeout_s: float | None = None) -> bytes:
         """Send one frame and return the one-frame reply; raises NoReply after the deadline."""
         if self._socket is None:
-            self._socket = connect_req(self._context, self.address)
+            credentials = ClientCredentials.from_environment()
+            self._socket = connect_req(self._context, self.address, credentials=credentials)
         deadline = self.timeout_s if timeout_s is None else timeout_s
         self._socket.send(frame)
         if not self._socket.poll(int(deadline * 1000), zmq.POLLIN):

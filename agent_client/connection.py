@@ -1,31 +1,63 @@
 """The learner's end of the wire: one request, one reply, always within a deadline.
 
-Follows the ZeroMQ guide's Lazy Pirate client: a REQ socket with ``LINGER = 0``, a poll with a
-timeout on every receive, and a fresh socket after a lost reply (a REQ socket that missed its
-reply cannot send again).
+Follows the ZeroMQ guide's Lazy Pirate client: a REQ socket with ``LINGER = 0`` and a poll with a
+timeout on every receive. The socket is relaxed and correlated, so after a timeout the same
+request may simply be sent again (the server answers a retried step from its cache, and the late
+reply to the first attempt is dropped by ZeroMQ). A broken or untrustworthy connection gets a
+fresh socket; every socket of one `Connection` carries the same routing id, so the server still
+knows the client after such a reconnect.
+
+While it waits, the connection also watches its socket's events: ZeroMQ's heartbeats close a
+connection whose peer stopped answering, so a dead or frozen server raises `ServerLost` within
+seconds even when a step may legitimately take much longer (`ServerTimeout`); a refused CURVE
+handshake raises `AuthenticationFailed` at once.
 """
 
 from __future__ import annotations
 
+import os
+import secrets
 import time
 
 import zmq
+from zmq.utils.monitor import parse_monitor_message
 
 from protocol.codec import decode_reply, encode
 from protocol.errors import ProtocolError
 from protocol.messages import Error, Hello, Reply, Request, Welcome
-from protocol.transport import connect_req, parse_endpoint
+from protocol.security import ClientCredentials
+from protocol.transport import HEARTBEAT_TIMEOUT_MS, connect_req, parse_endpoint
 from protocol.version import PROTOCOL_VERSION
 
 CLIENT_NAME = "agent_client"
+
+_UP = zmq.EVENT_CONNECTED
+_LOST = zmq.EVENT_DISCONNECTED
+_REFUSED = (
+    zmq.EVENT_HANDSHAKE_FAILED_AUTH
+    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+)
 
 
 class BridgeError(Exception):
     """Base class of the client's errors."""
 
 
-class ServerTimeout(BridgeError):
+class ServerUnavailable(BridgeError):
+    """The server cannot be reached or stopped answering; a retry policy may reconnect."""
+
+
+class ServerTimeout(ServerUnavailable):
     """The server did not answer within the deadline (dead, hung or unreachable)."""
+
+
+class ServerLost(ServerUnavailable):
+    """The connection broke while a request was in flight (the server died or froze)."""
+
+
+class AuthenticationFailed(BridgeError):
+    """The server refused the CURVE handshake (wrong keys, or keys where none are expected)."""
 
 
 class ServerError(BridgeError):
@@ -44,12 +76,24 @@ class MalformedReply(BridgeError):
 class Connection:
     """A request/reply channel to one server, with per-request timeouts."""
 
-    def __init__(self, address: str, timeout_s: float = 10.0) -> None:
+    def __init__(
+        self,
+        address: str,
+        timeout_s: float = 10.0,
+        credentials: ClientCredentials | None = None,
+        heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_MS / 1000,
+    ) -> None:
+        """`credentials` default to $AV_BRIDGE_SERVER_KEY / $AV_BRIDGE_SECRET_KEY when set; a
+        server silent on the wire (no heartbeat answered) for `heartbeat_timeout_s` is lost."""
         parse_endpoint(address)  # fail early on a malformed address
         self.address = address
         self.timeout_s = timeout_s
+        self.credentials = credentials or ClientCredentials.from_environment()
+        self.heartbeat_timeout_ms = int(heartbeat_timeout_s * 1000)
+        self.routing_id = f"agent-client-{os.getpid()}-{secrets.token_hex(4)}".encode()
         self._context = zmq.Context()
         self._socket: zmq.Socket[bytes] | None = None
+        self._monitor: zmq.Socket[bytes] | None = None
         self._poller = zmq.Poller()
 
     def request(self, message: Request, timeout_s: float | None = None) -> Reply:
@@ -66,12 +110,20 @@ class Connection:
     def exchange_raw(self, frame: bytes, timeout_s: float | None = None) -> Reply:
         """Send an already encoded frame (tests use it for malformed input)."""
         socket = self._ensure_socket()
-        deadline = self.timeout_s if timeout_s is None else timeout_s
+        wait_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + wait_s
+        self._check_events(waiting=False)
         socket.send(frame)
-        if not self._poller.poll(int(deadline * 1000)):
-            self._drop_socket()
+        while True:
+            remaining_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
+            ready = dict(self._poller.poll(remaining_ms))
+            if socket in ready:
+                break
+            if self._monitor in ready:
+                self._check_events(waiting=True)
+                continue
             raise ServerTimeout(
-                f"no reply from {self.address} within {deadline:.1f} s "
+                f"no reply from {self.address} within {wait_s:.1f} s "
                 "(is sim-server running and reachable?)"
             )
         frames = socket.recv_multipart()
@@ -91,17 +143,59 @@ class Connection:
             raise MalformedReply(f"expected welcome, got {reply.TYPE}")
         return reply
 
+    def _check_events(self, waiting: bool) -> None:
+        """Read the socket's pending events; raise if the connection broke or was refused.
+
+        While `waiting` for a reply any disconnection lost the request; between requests only a
+        connection that is still down counts (ZeroMQ reconnects by itself).
+        """
+        assert self._monitor is not None
+        refused = lost = False
+        while self._monitor.poll(0):
+            event = parse_monitor_message(self._monitor.recv_multipart())["event"]
+            if event & _UP:
+                lost = waiting and lost
+            if event & _LOST:
+                lost = True
+            refused = refused or bool(event & _REFUSED)
+        if refused:
+            self._drop_socket()
+            raise AuthenticationFailed(
+                f"{self.address} refused the CURVE handshake: check --server-key and "
+                "--secret-key (and that the server authorises this client's public key)"
+            )
+        if lost:
+            self._drop_socket()
+            raise ServerLost(
+                f"connection to {self.address} lost "
+                + ("while waiting for a reply " if waiting else "")
+                + "(the server died, froze or restarted)"
+            )
+
     def _ensure_socket(self) -> zmq.Socket[bytes]:
         if self._socket is None:
-            self._socket = connect_req(self._context, self.address)
+            self._socket = connect_req(
+                self._context,
+                self.address,
+                self.routing_id,
+                self.credentials,
+                self.heartbeat_timeout_ms,
+            )
+            self._monitor = self._socket.get_monitor_socket(_UP | _LOST | _REFUSED)
             self._poller.register(self._socket, zmq.POLLIN)
+            self._poller.register(self._monitor, zmq.POLLIN)
         return self._socket
 
     def _drop_socket(self) -> None:
         if self._socket is not None:
             self._poller.unregister(self._socket)
+            self._socket.disable_monitor()
             self._socket.close(linger=0)
             self._socket = None
+        if self._monitor is not None:
+            self._poller.unregister(self._monitor)
+            self._monitor.close(linger=0)
+            self._monitor = None
 
     def close(self) -> None:
         """Close the socket and the context; never blocks."""
@@ -123,6 +217,6 @@ def wait_for_server(address: str, timeout_s: float = 30.0) -> Welcome:
         with Connection(address, timeout_s=max(0.1, min(1.0, remaining))) as connection:
             try:
                 return connection.hello()
-            except ServerTimeout:
+            except ServerUnavailable:
                 if time.monotonic() >= deadline:
                     raise

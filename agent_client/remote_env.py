@@ -9,6 +9,7 @@ The reward is computed here, on the learner's side, from the observations alone.
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -17,9 +18,17 @@ import numpy as np
 import zmq
 from gymnasium import spaces
 
-from agent_client.connection import Connection, MalformedReply, ServerTimeout
+from agent_client.connection import (
+    BridgeError,
+    Connection,
+    MalformedReply,
+    ServerError,
+    ServerTimeout,
+    ServerUnavailable,
+)
 from protocol.messages import Close, Observation, OptionValue, Reset, Step, Welcome
 from protocol.schema import Flattener
+from protocol.security import ClientCredentials
 from protocol.transport import DEFAULT_ADDRESS
 
 RewardFn = Callable[[Observation | None, Observation, float], float]
@@ -40,15 +49,21 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         reward: str | RewardFn = "safe",
         timeout_s: float = 10.0,
         reset_timeout_s: float = 120.0,
+        credentials: ClientCredentials | None = None,
         **options: OptionValue,
     ) -> None:
-        """Connect and shake hands; `options` are scenario options sent with every reset."""
+        """Connect and shake hands; `options` are scenario options sent with every reset.
+
+        `credentials` (CURVE keys) default to $AV_BRIDGE_SERVER_KEY / $AV_BRIDGE_SECRET_KEY.
+        """
         self.address = address
         self.scenario = scenario
         self.options = dict(options)
         self.reset_timeout_s = reset_timeout_s
         self.reward_fn = _resolve_reward(reward)
-        self._connection = Connection(address, timeout_s)
+        self.timeout_s = timeout_s
+        self._credentials = credentials
+        self._connection = Connection(address, timeout_s, credentials)
         try:
             self.welcome: Welcome = self._connection.hello(timeout_s)
             self.scenario_options = self._check_scenario()
@@ -97,12 +112,42 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         self._done = obs.terminated or obs.truncated
         return self._vector(obs), reward, obs.terminated, obs.truncated, {"observation": obs}
 
+    def reconnect(self, timeout_s: float) -> None:
+        """After `ServerUnavailable`: connect afresh and shake hands, waiting up to `timeout_s`.
+
+        For a server that restarts (or a network that comes back). The running episode is lost:
+        call `reset` next. Raises `ServerUnavailable` if no server answered in time, and
+        `MalformedReply` if the server came back with another observation schema.
+        """
+        deadline = time.monotonic() + timeout_s
+        if self._connection is not None:
+            self._connection.close()
+        self._done, self._last = True, None
+        self._connection = Connection(self.address, self.timeout_s, self._credentials)
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                welcome = self._connection.hello(timeout_s=max(0.1, remaining))
+                break
+            except ServerError as exc:
+                if exc.code != "busy" or remaining <= 0:
+                    raise
+                time.sleep(min(1.0, remaining))  # back off: another client still holds it
+            except ServerUnavailable:
+                if time.monotonic() >= deadline:
+                    raise ServerTimeout(
+                        f"no server at {self.address} came back within {timeout_s:g} s"
+                    ) from None
+        if Flattener(welcome.observation_fields).names != self.flatten.names:
+            raise MalformedReply(f"{self.address} came back with another observation schema")
+        self.welcome = welcome
+
     def close(self) -> None:
         """Say goodbye (best effort, short timeout) and release the socket."""
         if getattr(self, "_connection", None) is None:
             return
         # The server may be gone or broken: closing our side is all that is left then.
-        with contextlib.suppress(ServerTimeout, MalformedReply, zmq.ZMQError):
+        with contextlib.suppress(BridgeError, zmq.ZMQError):
             self._connection.exchange(Close(), timeout_s=1.0)
         self._connection.close()
         self._connection = None  # type: ignore[assignment]

@@ -12,18 +12,19 @@ import dataclasses
 import json
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import torch
 
 from agent_client.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.config import TrainConfig
+from agent_client.connection import ServerError, ServerUnavailable
 from agent_client.ddpg import Agent
 from agent_client.drive import aggregate, run_episode
 from agent_client.features import FeatureMap
@@ -42,6 +43,11 @@ CEILING_TARGET = 0.98
 """Average speed required, as a share of the leader-at-entry ceiling."""
 PRETRAIN_SEED = 1_000_000
 """First seed of the IDM pre-training episodes (disjoint from training and evaluation seeds)."""
+EPISODE_FAILURES = ("simulator_error", "insertion_failed")
+"""Error codes after which the server's next reset starts afresh: the trainer tries again."""
+MAX_FAILURES_IN_A_ROW = 5
+
+T = TypeVar("T")
 
 
 class Reporter(Protocol):
@@ -76,6 +82,8 @@ class Progress:
     converged_time: float | None = None
     best_score: float = -float("inf")
     evaluations: list[dict[str, Any]] = field(default_factory=list)
+    reconnects: int = 0
+    failed_episodes: int = 0
 
 
 def targets_met(policy: dict[str, float], idm: dict[str, float]) -> dict[str, bool]:
@@ -99,8 +107,11 @@ class Trainer:
         out: Path,
         timeout_s: float = 10.0,
         reporter: Reporter | None = None,
+        retry_for_s: float = 0.0,
     ) -> None:
+        """`retry_for_s` > 0: when the server is lost, wait that long for it to come back."""
         self.config = config
+        self.retry_for_s = retry_for_s
         self.out = out
         self.reporter: Reporter = reporter or QuietReporter()
         self.say = self.reporter.message
@@ -144,12 +155,12 @@ class Trainer:
             with self._signals():
                 if self.idm_eval is None and self.config.eval_every > 0:
                     self.say("evaluating the IDM baseline on the evaluation seeds")
-                    self.idm_eval = aggregate(self._evaluate(self.idm))
+                    self.idm_eval = aggregate(self._resilient(lambda: self._evaluate(self.idm)))
                     (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
                 if self.config.pretrain_idm and self.progress.global_step == 0:
-                    self._pretrain()
+                    self._resilient(self._pretrain)
                 while self.progress.episode < self.config.episodes and not self._stop_requested:
-                    summary, losses, q_mean = self._train_episode()
+                    summary, losses, q_mean = self._resilient(self._train_episode)
                     if summary is None:
                         break  # interrupted mid-episode: the episode restarts on resume
                     self.progress.episode += 1
@@ -158,7 +169,7 @@ class Trainer:
                     log.episode(row)
                     self.reporter.episode(row)
                     if self._evaluation_due():
-                        evaluation = self._evaluate_policy()
+                        evaluation = self._resilient(self._evaluate_policy)
                         log.evaluation(evaluation)
                         self.say(evaluation_line(evaluation))
                         if self._converged():
@@ -173,6 +184,27 @@ class Trainer:
                 self._save_policy("policy.pt")
             log.close()
         return self.progress
+
+    def _resilient(self, work: Callable[[], T]) -> T:
+        """Run `work`; on a lost server (if a retry time is set) or a failed simulator episode,
+        reconnect or reset and run it again. The buffer and the counters are kept."""
+        failures = 0
+        while True:
+            try:
+                return work()
+            except ServerUnavailable as exc:
+                if self.retry_for_s <= 0:
+                    raise
+                self.say(f"{exc}; waiting up to {self.retry_for_s:g} s for the server")
+                self.env.reconnect(self.retry_for_s)
+                self.progress.reconnects += 1
+                self.say(f"reconnected to {self.env.address}; starting a new episode")
+            except ServerError as exc:
+                failures += 1
+                if exc.code not in EPISODE_FAILURES or failures >= MAX_FAILURES_IN_A_ROW:
+                    raise
+                self.progress.failed_episodes += 1
+                self.say(f"the simulator failed ({exc}); starting a new episode")
 
     def request_stop(self) -> None:
         """Finish the current step, checkpoint and return from `run` (safe from handlers)."""

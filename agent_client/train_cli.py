@@ -44,6 +44,14 @@ def add_train_parser(commands: Any, add_connection_arguments: Any) -> None:
         help="stop after 3 evaluations in a row meet every target",
     )
     train.add_argument("--resume", type=Path, metavar="RUN", help="continue runs/NAME")
+    train.add_argument(
+        "--retry-for",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="when the server is lost, wait this long for it (or a restarted one) to answer, "
+        "then continue with a new episode; 0 (default) stops the run with a checkpoint",
+    )
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=run_train)
 
@@ -126,7 +134,7 @@ def run_train(args: argparse.Namespace) -> int:
         config = build_config(args)
         out = args.out or Path("runs") / f"{config.scenario}-{config.reward}-{config.seed}"
     reporter = BarReporter(config.episodes, 0, args.quiet)
-    trainer = Trainer(config, args.server, out, args.timeout, reporter)
+    trainer = Trainer(config, args.server, out, args.timeout, reporter, args.retry_for)
     try:
         reporter.message(
             f"training {config.ddpg.algo} on {config.scenario} with reward {config.reward} "

@@ -1,22 +1,28 @@
 """``sim-server``: run a simulator behind the bridge protocol.
 
 Prints ``listening on ADDRESS`` on stdout once it accepts requests; logs go to stderr.
+``sim-server keygen --out DIR`` writes CURVE key pairs for an authenticated server.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 from pathlib import Path
 from types import FrameType
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES
-from protocol.transport import DEFAULT_ADDRESS, parse_endpoint
+from protocol.security import KeyPair, ServerCredentials, generate_keys, load_key_pair
+from protocol.transport import DEFAULT_ADDRESS, HEARTBEAT_TIMEOUT_MS, parse_endpoint
 from sim_server import __version__
 from sim_server.backend import Backend
-from sim_server.server import Server, Session, format_listening
+from sim_server.server import DEFAULT_SESSION_TIMEOUT_S, Server, Session, format_listening
+
+SECRET_KEY_ENV = "SIM_SERVER_SECRET_KEY"
+AUTHORIZED_KEYS_ENV = "SIM_SERVER_AUTHORIZED_KEYS"
 
 BACKENDS = ("sumo", "fake")
 
@@ -53,14 +59,36 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--session-timeout",
         type=float,
-        default=60.0,
-        help="seconds of silence after which another client may take over (default 60)",
+        default=DEFAULT_SESSION_TIMEOUT_S,
+        help="seconds of silence after which another client may take over one that is still "
+        "connected (default %(default)g; a disconnected or frozen client is released at once)",
+    )
+    parser.add_argument(
+        "--heartbeat-timeout",
+        type=float,
+        default=HEARTBEAT_TIMEOUT_MS / 1000,
+        help="seconds without any sign of life (ZeroMQ heartbeats are answered even during a "
+        "long gradient update) after which a client counts as gone (default %(default)g)",
     )
     parser.add_argument(
         "--max-frame-bytes",
         type=int,
         default=DEFAULT_MAX_FRAME_BYTES,
         help=f"largest request accepted (default {DEFAULT_MAX_FRAME_BYTES})",
+    )
+    parser.add_argument(
+        "--secret-key",
+        type=Path,
+        default=os.environ.get(SECRET_KEY_ENV) or None,
+        help="CURVE: the server's secret key file (server.key_secret from `sim-server keygen`); "
+        f"turns on authentication and encryption (env {SECRET_KEY_ENV})",
+    )
+    parser.add_argument(
+        "--authorized-keys",
+        type=Path,
+        default=os.environ.get(AUTHORIZED_KEYS_ENV) or None,
+        help="CURVE: directory of the client public keys (*.key) allowed in "
+        f"(default: the directory of --secret-key; env {AUTHORIZED_KEYS_ENV})",
     )
     parser.add_argument(
         "--insecure",
@@ -87,7 +115,51 @@ def make_backend(args: argparse.Namespace) -> Backend:
     return SumoBackend(cache_dir=args.cache_dir, custom=custom)
 
 
+def build_keygen_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sim-server keygen",
+        description="Write CURVE key pairs: server.key(_secret) and client.key(_secret). Give the "
+        "server server.key_secret (and the directory of client .key files), give each learner "
+        "server.key and client.key_secret.",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="directory for the key files")
+    return parser
+
+
+def keygen(argv: list[str]) -> int:
+    args = build_keygen_parser().parse_args(argv)
+    try:
+        written = generate_keys(args.out)
+    except (FileExistsError, OSError) as exc:
+        print(f"sim-server keygen: {exc}", file=sys.stderr)
+        return 1
+    for path in written:
+        print(path)
+    return 0
+
+
+def load_credentials(
+    parser: argparse.ArgumentParser, args: argparse.Namespace
+) -> ServerCredentials | None:
+    """CURVE credentials from --secret-key / --authorized-keys, or None; usage errors exit."""
+    if args.secret_key is None:
+        if args.authorized_keys is not None:
+            parser.error("--authorized-keys needs --secret-key")
+        return None
+    try:
+        keys: KeyPair = load_key_pair(args.secret_key)
+    except ValueError as exc:
+        parser.error(f"--secret-key: {exc}")
+    authorized = args.authorized_keys or args.secret_key.parent
+    if not authorized.is_dir() or not any(authorized.glob("*.key")):
+        parser.error(f"--authorized-keys {authorized}: no directory of client *.key files")
+    return ServerCredentials(keys, authorized)
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["keygen"]:
+        return keygen(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -97,10 +169,12 @@ def main(argv: list[str] | None = None) -> int:
         endpoint = parse_endpoint(args.bind)
     except ValueError as exc:
         parser.error(str(exc))
-    if not endpoint.is_loopback and not args.insecure:
+    credentials = load_credentials(parser, args)
+    if not endpoint.is_loopback and credentials is None and not args.insecure:
         parser.error(
-            f"{args.bind} is reachable from other machines and this server has no "
-            "authentication: bind a loopback address, or pass --insecure on a trusted network"
+            f"{args.bind} is reachable from other machines: turn on authentication with "
+            "--secret-key (keys from `sim-server keygen`), bind a loopback address, or pass "
+            "--insecure on a trusted network"
         )
     if args.sumocfg is not None:
         if not args.sumocfg.is_file():
@@ -111,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     backend = make_backend(args)
     session = Session(backend, args.max_frame_bytes, args.session_timeout)
     try:
-        server = Server(session, args.bind)
+        server = Server(session, args.bind, credentials, args.heartbeat_timeout)
     except Exception as exc:  # zmq.ZMQError and OS errors: report and exit cleanly
         backend.close()
         print(f"sim-server: cannot bind {args.bind}: {exc}", file=sys.stderr)
@@ -124,10 +198,13 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_signal)
     print(format_listening(server.endpoint), flush=True)
     logging.getLogger("sim_server").info(
-        "backend %s %s, scenarios: %s",
+        "backend %s %s, scenarios: %s; %s",
         backend.name,
         backend.version,
         ", ".join(s.name for s in backend.scenarios()),
+        f"CURVE on, client keys from {credentials.authorized_keys}"
+        if credentials is not None
+        else "no authentication",
     )
     server.serve()
     logging.getLogger("sim_server").info("stopped")

@@ -1,8 +1,9 @@
 """The server loop: one ROUTER socket, one session, one backend.
 
 `Session.handle` turns one request frame into one reply frame and never raises: every fault of
-the client becomes an `Error` reply and the server goes on serving. The loop around it only moves
-frames between the socket and the session, and watches for shutdown.
+the client becomes an `Error` reply and the server goes on serving. The loop around it moves
+frames between the socket and the session, tells the session when its client's connection is
+gone (killed, or silent past ZeroMQ's heartbeat timeout) and watches for shutdown.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import time
 from dataclasses import dataclass
 
 import zmq
+from zmq.utils.monitor import parse_monitor_message
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES, decode_request, encode
 from protocol.errors import ErrorCode, ProtocolError
@@ -30,7 +32,8 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.schema import OBSERVATION_FIELDS
-from protocol.transport import Endpoint, bind_router, remove_ipc_file
+from protocol.security import ServerCredentials, start_authenticator
+from protocol.transport import HEARTBEAT_TIMEOUT_MS, Endpoint, bind_router, remove_ipc_file
 from protocol.version import PROTOCOL_VERSION, format_version, is_compatible
 from sim_server import __version__
 from sim_server.backend import Backend, BackendError
@@ -38,6 +41,8 @@ from sim_server.backend import Backend, BackendError
 log = logging.getLogger("sim_server")
 
 POLL_INTERVAL_MS = 100
+DEFAULT_SESSION_TIMEOUT_S = 600.0
+"""Silence after which another client may take over a client that is still connected."""
 
 
 @dataclass
@@ -56,7 +61,7 @@ class Session:
         self,
         backend: Backend,
         max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES,
-        session_timeout_s: float = 60.0,
+        session_timeout_s: float = DEFAULT_SESSION_TIMEOUT_S,
     ) -> None:
         self.backend = backend
         self.max_frame_bytes = max_frame_bytes
@@ -76,6 +81,7 @@ class Session:
             )
         )
         self.owner: bytes | None = None
+        self.owner_connected = False
         self._last_seen = 0.0
         self._episode: _Episode | None = None
 
@@ -89,6 +95,8 @@ class Session:
             self._check_owner(peer, request, now)
             reply = self._dispatch(peer, request)
             self._last_seen = now
+            if peer == self.owner:
+                self.owner_connected = True
             return reply
         except ProtocolError as exc:
             return encode(Error(exc.code.value, exc.message))
@@ -104,13 +112,28 @@ class Session:
                 )
             )
 
+    def owner_disconnected(self) -> None:
+        """The owner's connection is gone: another client's hello may take over at once.
+
+        The episode stays: the same client may come back on a fresh socket (its routing id is
+        kept) and retry its last step.
+        """
+        if self.owner is not None and self.owner_connected:
+            log.info("client disconnected; the simulator is free for the next client")
+        self.owner_connected = False
+
     def _check_owner(self, peer: bytes, request: Message, now: float) -> None:
         if self.owner is None or peer == self.owner:
             return
-        if now - self._last_seen > self.session_timeout_s and isinstance(request, Hello):
-            log.info("session of an idle client expired; a new client takes over")
-            self._end_session()
-            return
+        if isinstance(request, Hello):
+            if not self.owner_connected:
+                log.info("a new client takes over from a disconnected one")
+                self._end_session()
+                return
+            if now - self._last_seen > self.session_timeout_s:
+                log.info("session of an idle client expired; a new client takes over")
+                self._end_session()
+                return
         raise ProtocolError(
             ErrorCode.BUSY,
             "another client holds this simulator; start another server or retry later",
@@ -140,7 +163,7 @@ class Session:
                 f"{format_version(PROTOCOL_VERSION)}: major versions must match",
             )
         if self.owner != peer:
-            log.info("hello from %s", hello.client or "an unnamed client")
+            log.info("hello from %s", _printable(hello.client) or "an unnamed client")
         self.owner = peer
         self._episode = None
         return self._welcome
@@ -192,7 +215,14 @@ class Session:
 
     def _end_session(self) -> None:
         self.owner = None
+        self.owner_connected = False
         self._episode = None
+
+
+def _printable(text: str, limit: int = 64) -> str:
+    """A client-chosen name made safe for one log line."""
+    cleaned = "".join(c if c.isprintable() else "?" for c in text[:limit])
+    return cleaned + ("..." if len(text) > limit else "")
 
 
 def _merge_options(info: ScenarioInfo, given: dict[str, OptionValue]) -> dict[str, OptionValue]:
@@ -219,11 +249,28 @@ def _merge_options(info: ScenarioInfo, given: dict[str, OptionValue]) -> dict[st
 class Server:
     """Binds the socket and pumps frames through a `Session` until stopped."""
 
-    def __init__(self, session: Session, address: str) -> None:
+    def __init__(
+        self,
+        session: Session,
+        address: str,
+        credentials: ServerCredentials | None = None,
+        heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_MS / 1000,
+    ) -> None:
         self.session = session
         self.address = address
         self._context = zmq.Context()
-        self._socket, self.endpoint = bind_router(self._context, address)
+        self._authenticator = (
+            start_authenticator(self._context, credentials) if credentials is not None else None
+        )
+        try:
+            self._socket, self.endpoint = bind_router(
+                self._context, address, credentials, int(heartbeat_timeout_s * 1000)
+            )
+        except Exception:
+            self._release_context()
+            raise
+        self._monitor = self._socket.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self._owner_fd: int | None = None
         self._stop = threading.Event()
 
     def stop(self) -> None:
@@ -234,37 +281,64 @@ class Server:
         """Serve requests until `stop`; always releases the socket and the backend."""
         poller = zmq.Poller()
         poller.register(self._socket, zmq.POLLIN)
+        poller.register(self._monitor, zmq.POLLIN)
         try:
             while not self._stop.is_set():
-                if not poller.poll(POLL_INTERVAL_MS):
-                    continue
-                frames = self._socket.recv_multipart(copy=True)
-                self._answer(frames)
+                ready = dict(poller.poll(POLL_INTERVAL_MS))
+                if self._monitor in ready:  # disconnections first: they came before the data
+                    self._read_events()
+                if self._socket in ready:
+                    self._answer(self._socket.recv_multipart(copy=False))
         finally:
             self.close()
 
-    def _answer(self, frames: list[bytes]) -> None:
+    def _read_events(self) -> None:
+        while self._monitor.poll(0):
+            event = parse_monitor_message(self._monitor.recv_multipart())
+            if event["event"] == zmq.EVENT_DISCONNECTED and event["value"] == self._owner_fd:
+                self._owner_fd = None
+                self.session.owner_disconnected()
+
+    def _answer(self, frames: list[zmq.Frame]) -> None:
         # A REQ peer sends [identity, b"", payload]; keep the envelope, answer the payload.
+        parts = [frame.bytes for frame in frames]
         try:
-            split = frames.index(b"", 1) + 1
+            split = parts.index(b"", 1) + 1
         except ValueError:
             split = 1
-        envelope, body = frames[:split], frames[split:]
+        envelope, body = parts[:split], parts[split:]
         if len(body) != 1:
             reply = encode(
                 Error(ErrorCode.DECODE_ERROR.value, f"expected one frame, got {len(body)}")
             )
         else:
-            reply = self.session.handle(frames[0], body[0])
+            reply = self.session.handle(parts[0], body[0])
+            if self.session.owner == parts[0]:
+                self._owner_fd = _source_fd(frames[-1])
         self._socket.send_multipart([*envelope, reply])
 
     def close(self) -> None:
         if self._socket.closed:
             return
+        self._socket.disable_monitor()
+        self._monitor.close(linger=0)
         self._socket.close(linger=0)
-        self._context.term()
+        self._release_context()
         remove_ipc_file(self.endpoint)
         self.session.backend.close()
+
+    def _release_context(self) -> None:
+        if self._authenticator is not None:
+            self._authenticator.stop()
+        self._context.term()
+
+
+def _source_fd(frame: zmq.Frame) -> int | None:
+    """The file descriptor of the connection a frame came in on (None if unavailable)."""
+    try:
+        return int(frame.get(zmq.SRCFD))
+    except (zmq.ZMQError, AttributeError, TypeError, ValueError):
+        return None
 
 
 def format_listening(endpoint: Endpoint) -> str:

@@ -50,12 +50,14 @@ def wait_for_line(process: subprocess.Popen[str], prefix: str, timeout_s: float)
 
 
 @contextmanager
-def sim_server(*args: str, cache_dir: Path | None = None) -> Iterator[RunningServer]:
-    """Start `sim-server --bind tcp://127.0.0.1:0 ARGS`, wait for readiness, always clean up."""
+def sim_server(
+    *args: str, cache_dir: Path | None = None, bind: str = "tcp://127.0.0.1:0"
+) -> Iterator[RunningServer]:
+    """Start `sim-server --bind BIND ARGS`, wait for readiness, always clean up."""
     env = dict(os.environ)
     if cache_dir is not None:
         env["XDG_CACHE_HOME"] = str(cache_dir)
-    command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0", *args]
+    command = [sys.executable, "-m", "sim_server.cli", "--bind", bind, *args]
     # stderr goes to a file: an unread pipe fills up and blocks a chatty server.
     with tempfile.TemporaryFile(mode="w+") as log:
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log, text=True, env=env)
