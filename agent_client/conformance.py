@@ -12,6 +12,8 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
+import secrets
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, TypeVar
@@ -141,6 +143,7 @@ class Probe:
     def __init__(self, address: str, timeout_s: float) -> None:
         self.address = address
         self.timeout_s = timeout_s
+        self.routing_id = f"agent-client-check-{os.getpid()}-{secrets.token_hex(4)}".encode()
         self._context = zmq.Context()
         self._socket: zmq.Socket[bytes] | None = None
 
@@ -148,7 +151,9 @@ class Probe:
         """Send one frame and return the one-frame reply; raises NoReply after the deadline."""
         if self._socket is None:
             credentials = ClientCredentials.from_environment()
-            self._socket = connect_req(self._context, self.address, credentials=credentials)
+            self._socket = connect_req(
+                self._context, self.address, self.routing_id, credentials=credentials
+            )
         deadline = self.timeout_s if timeout_s is None else timeout_s
         self._socket.send(frame)
         if not self._socket.poll(int(deadline * 1000), zmq.POLLIN):
@@ -250,6 +255,7 @@ class Checker:
                 ("schema", self.check_schema),
                 ("reset", self.check_reset),
                 ("step", self.check_step),
+                ("reconnect", self.check_reconnect),
                 ("termination", self.check_termination),
                 ("bad_requests", self.check_bad_requests),
                 ("determinism", self.check_determinism),
@@ -531,6 +537,26 @@ class Checker:
         if not action.acceleration_limited_by:
             raise CheckFailed(f"requested {request:g} m/s^2: acceleration_limited_by is empty")
         return action.acceleration
+
+    def check_reconnect(self) -> str:
+        history = self._running_episode(30, 2)
+        last_bytes, _ = history[-1]
+        self.probe.drop()  # a fresh socket that keeps the client's routing id
+        try:
+            again, reply = self.probe.exchange(Step(2, 0.0))
+        except NoReply as exc:
+            raise CheckFailed(
+                "a client that reconnected with the same routing id got no reply: set "
+                "ZMQ_ROUTER_HANDOVER on the server socket (protocol.md section 1)"
+            ) from exc
+        expect(reply, Observation, "step 2 retried on a fresh socket (same routing id)")
+        if again != last_bytes:
+            raise CheckFailed("step 2 retried on a fresh socket was not the cached reply")
+        self._step(3, 0.0)
+        return (
+            "a fresh socket with the same routing id kept the session: the retried step got "
+            "its cached reply and the episode went on"
+        )
 
     def check_termination(self) -> str:
         assert self.scenario is not None

@@ -28,8 +28,8 @@ from sim_server.fake_backend import FakeBackend
 from sim_server.server import Session
 
 CHECKS = [
-    "handshake", "version_refusal", "schema", "reset", "step", "termination", "bad_requests",
-    "determinism", "close",
+    "handshake", "version_refusal", "schema", "reset", "step", "reconnect", "termination",
+    "bad_requests", "determinism", "close",
 ]  # fmt: skip
 
 
@@ -205,7 +205,7 @@ def test_cli_prints_a_table(toy: ToyServer, capsys: pytest.CaptureFixture[str]) 
     assert main(["check", "--server", toy.address, "--scenario", "cf"]) == 0
     out = capsys.readouterr().out
     assert out.splitlines()[0].split() == ["check", "result", "detail"]
-    assert "CONFORMS - 9 passed, 0 warnings, 0 failed" in out
+    assert "CONFORMS - 10 passed, 0 warnings, 0 failed" in out
 
 
 @pytest.mark.parametrize(
@@ -227,7 +227,6 @@ def test_a_broken_server_fails_its_check_and_exit_1(
         report = run_checks(server.address, timeout_s=1.0)
     assert statuses(report)[failing] == FAIL, report.format_table()
     assert report.exit_code == 1
-    # A fresh server: after a missed reply the kit's new socket is another client to the first.
     with server_class() as server:
         assert main(["check", "--server", server.address, "--timeout", "1"]) == 1
     assert any(line.split()[:2] == [failing, FAIL] for line in capsys.readouterr().out.splitlines())

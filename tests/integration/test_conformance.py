@@ -12,12 +12,8 @@ from agent_client.conformance import PASS, run_checks
 from agent_client.connection import Connection
 from protocol.messages import Close, Hello, Observation, Reset
 from protocol.version import PROTOCOL_VERSION
+from tests.agent_client.test_conformance import CHECKS
 from tests.conftest import RunningServer, sim_server
-
-CHECKS = [
-    "handshake", "version_refusal", "schema", "reset", "step", "termination", "bad_requests",
-    "determinism", "close",
-]  # fmt: skip
 
 
 def assert_free(address: str) -> None:
@@ -60,7 +56,7 @@ def test_the_fake_backend_conforms() -> None:
             capture_output=True, text=True, timeout=120, check=False,
         )  # fmt: skip
         assert result.returncode == 0, result.stdout + result.stderr
-        assert "CONFORMS - 9 passed, 0 warnings, 0 failed, 0 skipped" in result.stdout
+        assert "CONFORMS - 10 passed, 0 warnings, 0 failed, 0 skipped" in result.stdout
         assert_free(server.address)
 
 
