@@ -29,10 +29,18 @@ def parse_option(text: str) -> tuple[str, OptionValue]:
     return name, value
 
 
-def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--server", default=DEFAULT_ADDRESS, help=f"server address (default {DEFAULT_ADDRESS})"
-    )
+def add_connection_arguments(parser: argparse.ArgumentParser, several: bool = False) -> None:
+    if several:
+        parser.add_argument(
+            "--server",
+            action="append",
+            help="server address; repeat it to step several simulators at once "
+            f"(default {DEFAULT_ADDRESS})",
+        )
+    else:
+        parser.add_argument(
+            "--server", default=DEFAULT_ADDRESS, help=f"server address (default {DEFAULT_ADDRESS})"
+        )
     parser.add_argument("--scenario", help="scenario name (default cf)")
     parser.add_argument(
         "--option",

@@ -98,10 +98,8 @@ class Connection:
 
     def request(self, message: Request, timeout_s: float | None = None) -> Reply:
         """Send one request and return the reply; an `Error` reply raises `ServerError`."""
-        reply = self.exchange(message, timeout_s)
-        if isinstance(reply, Error):
-            raise ServerError(reply.code, reply.message)
-        return reply
+        self.send(message)
+        return self.receive_checked(timeout_s)
 
     def exchange(self, message: Request, timeout_s: float | None = None) -> Reply:
         """Like `request`, but returns `Error` replies instead of raising."""
@@ -109,11 +107,25 @@ class Connection:
 
     def exchange_raw(self, frame: bytes, timeout_s: float | None = None) -> Reply:
         """Send an already encoded frame (tests use it for malformed input)."""
+        self.send_raw(frame)
+        return self.receive(timeout_s)
+
+    def send(self, message: Request) -> None:
+        """First half of `request`: send, so that several servers can work at once."""
+        self.send_raw(encode(message))
+
+    def send_raw(self, frame: bytes) -> None:
         socket = self._ensure_socket()
-        wait_s = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + wait_s
         self._check_events(waiting=False)
         socket.send(frame)
+
+    def receive(self, timeout_s: float | None = None) -> Reply:
+        """Second half of `request`: the reply to what `send` sent, within the deadline."""
+        socket = self._socket
+        if socket is None:
+            raise RuntimeError("receive() without a request in flight")
+        wait_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + wait_s
         while True:
             remaining_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
             ready = dict(self._poller.poll(remaining_ms))
@@ -135,6 +147,13 @@ class Connection:
         except ProtocolError as exc:
             self._drop_socket()
             raise MalformedReply(f"invalid reply from {self.address}: {exc}") from exc
+
+    def receive_checked(self, timeout_s: float | None = None) -> Reply:
+        """`receive`, raising `ServerError` for an `Error` reply (like `request`)."""
+        reply = self.receive(timeout_s)
+        if isinstance(reply, Error):
+            raise ServerError(reply.code, reply.message)
+        return reply
 
     def hello(self, timeout_s: float | None = None) -> Welcome:
         """Handshake: announce our protocol version and receive the server's schemas."""

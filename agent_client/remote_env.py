@@ -85,27 +85,42 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         self._seq = 0
         self._last: Observation | None = None
         self._done = True
+        self._episode_seed = 0
 
     # ----------------------------------------------------------------------- gymnasium API
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        super().reset(seed=seed)
-        episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
-        request = Reset(self.scenario, episode_seed, {**self.options, **(options or {})})
-        obs = self._observation(self._connection.request(request, self.reset_timeout_s))
-        self._seq, self._last, self._done = 0, obs, False
-        return self._vector(obs), {"observation": obs, "seed": episode_seed}
+        self.send_reset(seed=seed, options=options)
+        return self.receive_reset()
 
     def step(self, action: ActionDict) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        self.send_step(action)
+        return self.receive_step()
+
+    # The two halves of reset and step, so that a vector env can keep several servers busy.
+
+    def send_reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> None:
+        super().reset(seed=seed)
+        self._episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
+        request = Reset(self.scenario, self._episode_seed, {**self.options, **(options or {})})
+        self._connection.send(request)
+
+    def receive_reset(self) -> tuple[np.ndarray, dict[str, Any]]:
+        obs = self._observation(self._connection.receive_checked(self.reset_timeout_s))
+        self._seq, self._last, self._done = 0, obs, False
+        return self._vector(obs), {"observation": obs, "seed": self._episode_seed}
+
+    def send_step(self, action: ActionDict) -> None:
         if self._done:
             raise gym.error.ResetNeeded("the episode has ended (or never started): call reset()")
         acceleration, lane_change = _parse_action(action)
         self._seq += 1
-        obs = self._observation(
-            self._connection.request(Step(self._seq, acceleration, lane_change))
-        )
+        self._connection.send(Step(self._seq, acceleration, lane_change))
+
+    def receive_step(self) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        obs = self._observation(self._connection.receive_checked())
         prev, self._last = self._last, obs
         elapsed = obs.time - prev.time if prev is not None else 0.0
         reward = float(self.reward_fn(prev, obs, elapsed))

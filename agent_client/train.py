@@ -1,9 +1,11 @@
 """The training loop of the paper's Fig. 1: read the state, score the last action, learn, act.
 
-One process, one remote simulator: every step the learner receives the recognition state from
-the server, computes the reward of its last action from it, stores the transition, runs its
-gradient updates and sends the next command. Greedy evaluations on held-out seeds judge the policy
-against the IDM baseline and the leader-at-entry ceiling; checkpoints make a run resumable.
+One learner, one or more remote simulators: every step the learner receives the recognition
+state from each server, computes the reward of its last action from it, stores the transitions
+in one replay buffer, runs its gradient updates and sends the next commands (to all servers at
+once, so they simulate in parallel). Greedy evaluations on held-out seeds, on the first server,
+judge the policy against the IDM baseline and the leader-at-entry ceiling; checkpoints make a
+run resumable.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import dataclasses
 import json
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +36,8 @@ from agent_client.policy import LANE_COMMANDS, ActionScale, PolicyDriver, save_p
 from agent_client.remote_env import RemoteEnv
 from agent_client.rewards import q_upper_bound
 from agent_client.run_log import RunLog
+from agent_client.vector_env import RemoteVectorEnv
+from protocol.messages import Observation
 
 JERK_TARGET = 0.026
 """Share of jerk samples above 5.6 m/s^3 allowed (the paper's Fig. 10 figure)."""
@@ -86,6 +90,23 @@ class Progress:
     failed_episodes: int = 0
 
 
+@dataclass
+class _Slot:
+    """The training episode running on one server."""
+
+    seed: int
+    obs: Observation
+    x: np.ndarray
+    recorder: EpisodeRecorder
+    states: list[np.ndarray] = field(default_factory=list)
+    accelerations: list[float] = field(default_factory=list)
+    lanes: list[int] = field(default_factory=list)
+
+
+Finished = tuple[EpisodeSummary, list[float], float]
+"""A finished training episode: its summary, the critic losses since the last one, its mean Q."""
+
+
 def targets_met(policy: dict[str, float], idm: dict[str, float]) -> dict[str, bool]:
     """The benchmark's acceptance criteria for one greedy evaluation."""
     return {
@@ -103,13 +124,16 @@ class Trainer:
     def __init__(
         self,
         config: TrainConfig,
-        server: str,
+        server: str | Sequence[str],
         out: Path,
         timeout_s: float = 10.0,
         reporter: Reporter | None = None,
         retry_for_s: float = 0.0,
     ) -> None:
-        """`retry_for_s` > 0: when the server is lost, wait that long for it to come back."""
+        """Train on one `server` address or several (one simulation each, stepped at once).
+
+        `retry_for_s` > 0: when a server is lost, wait that long for it to come back.
+        """
         self.config = config
         self.retry_for_s = retry_for_s
         self.out = out
@@ -117,15 +141,21 @@ class Trainer:
         self.say = self.reporter.message
         torch.set_num_threads(config.torch_threads)
         options = {"decision_interval": config.decision_interval, **config.scenario_options}
-        self.env = RemoteEnv(
-            server, config.scenario, reward=config.reward, timeout_s=timeout_s, **options
+        servers = [server] if isinstance(server, str) else list(server)
+        self.vec = RemoteVectorEnv(
+            servers, config.scenario, reward=config.reward, timeout_s=timeout_s, **options
         )
+        self.env: RemoteEnv = self.vec.envs[0]
+        """Where pre-training and the greedy evaluations run."""
         multi_lane = self._multi_lane()
         features = config.features if config.features != "auto" else ("lc" if multi_lane else "cf")
         lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
         self.features = FeatureMap(features)
         self.scale = ActionScale.from_schema(self.env.welcome.action)
-        self.agent = Agent(self.features.dim, 3 if lane_change else 1, config.ddpg, config.seed)
+        self.agent = Agent(
+            self.features.dim, 3 if lane_change else 1, config.ddpg, config.seed,
+            n_envs=len(servers),
+        )  # fmt: skip
         from agent_client.replay import ReplayBuffer
 
         self.buffer = ReplayBuffer(config.ddpg.buffer_size, self.features.dim, config.seed)
@@ -135,6 +165,9 @@ class Trainer:
         self.q_bound = q_upper_bound(config.reward, config.ddpg.gamma)
         self.idm_eval: dict[str, float] | None = None
         self._stop_requested = False
+        self._slots: list[_Slot | None] = [None] * len(servers)
+        self._episodes_started = 0
+        self._losses: list[float] = []
 
     def _multi_lane(self) -> bool:
         _, info = self.env.reset(seed=self.config.seed)
@@ -159,23 +192,25 @@ class Trainer:
                     (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
                 if self.config.pretrain_idm and self.progress.global_step == 0:
                     self._resilient(self._pretrain)
+                self._episodes_started = self.progress.episode
                 while self.progress.episode < self.config.episodes and not self._stop_requested:
-                    summary, losses, q_mean = self._resilient(self._train_episode)
-                    if summary is None:
-                        break  # interrupted mid-episode: the episode restarts on resume
-                    self.progress.episode += 1
-                    self.progress.wall_time = time.monotonic() - started
-                    row = self._episode_row(summary, losses, q_mean)
-                    log.episode(row)
-                    self.reporter.episode(row)
-                    if self._evaluation_due():
-                        evaluation = self._resilient(self._evaluate_policy)
-                        log.evaluation(evaluation)
-                        self.say(evaluation_line(evaluation))
-                        if self._converged():
+                    for summary, losses, q_mean in self._resilient(self._train_step):
+                        self.progress.episode += 1
+                        self.progress.wall_time = time.monotonic() - started
+                        row = self._episode_row(summary, losses, q_mean)
+                        log.episode(row)
+                        self.reporter.episode(row)
+                        if self._evaluation_due():
+                            evaluation = self._resilient(self._evaluate_policy)
+                            self._slots[0] = None  # the evaluation used the first server
+                            log.evaluation(evaluation)
+                            self.say(evaluation_line(evaluation))
+                            if self._converged():
+                                self._stop_requested = True
+                        if self.progress.episode % self.config.checkpoint_every == 0:
+                            self._checkpoint()
+                        if self._stop_requested or self.progress.episode >= self.config.episodes:
                             break
-                    if self.progress.episode % self.config.checkpoint_every == 0:
-                        self._checkpoint()
         finally:
             self.progress.wall_time = time.monotonic() - started
             self._checkpoint()
@@ -196,72 +231,92 @@ class Trainer:
                 if self.retry_for_s <= 0:
                     raise
                 self.say(f"{exc}; waiting up to {self.retry_for_s:g} s for the server")
-                self.env.reconnect(self.retry_for_s)
+                self._slots = [None] * len(self._slots)
+                for env in self.vec.envs:
+                    env.reconnect(self.retry_for_s)
                 self.progress.reconnects += 1
-                self.say(f"reconnected to {self.env.address}; starting a new episode")
+                self.say(f"reconnected to {', '.join(self.vec.addresses)}; new episodes start")
             except ServerError as exc:
                 failures += 1
                 if exc.code not in EPISODE_FAILURES or failures >= MAX_FAILURES_IN_A_ROW:
                     raise
                 self.progress.failed_episodes += 1
-                self.say(f"the simulator failed ({exc}); starting a new episode")
+                self._slots = [None] * len(self._slots)
+                self.say(f"the simulator failed ({exc}); starting new episodes")
 
     def request_stop(self) -> None:
         """Finish the current step, checkpoint and return from `run` (safe from handlers)."""
         self._stop_requested = True
 
     def close(self) -> None:
-        self.env.close()
+        self.vec.close()
 
     # ----------------------------------------------------------------------- episodes
 
-    def _train_episode(self) -> tuple[EpisodeSummary | None, list[float], float]:
-        cfg = self.config
-        seed = cfg.seed + self.progress.episode
-        _, info = self.env.reset(seed=seed)
-        obs = info["observation"]
-        recorder = EpisodeRecorder(self.progress.episode, seed, self.env.step_length)
-        recorder.add(obs)
-        self.agent.reset_noise()
-        x = self.features(obs)
-        states: list[np.ndarray] = []
-        accelerations: list[float] = []
-        lanes: list[int] = []
-        losses: list[float] = []
-        while True:
-            if self._stop_requested:
-                return None, losses, 0.0
-            u, lane = self._act(obs, x)
-            action = {
-                "acceleration": np.array([self.scale.to_env(u)]),
-                "lane_change": LANE_COMMANDS[lane],
-            }
-            _, reward, terminated, truncated, info = self.env.step(action)
+    def _train_step(self) -> list[Finished]:
+        """One step on every server (starting episodes where none runs), then the updates due."""
+        if self._stop_requested:
+            return []
+        self._start_episodes()
+        slots = [slot for slot in self._slots if slot is not None]
+        us, lanes = self._act(slots)
+        results = self.vec.step_each(
+            [self.scale.to_env(u) for u in us], [LANE_COMMANDS[lane] for lane in lanes]
+        )
+        finished: list[Finished] = []
+        for i, (slot, u, lane, result) in enumerate(zip(slots, us, lanes, results, strict=True)):
+            _, reward, terminated, truncated, info = result
             next_obs = info["observation"]
             next_x = self.features(next_obs)
-            self.buffer.add(x, u, lane, reward, next_x, terminated)
-            states.append(x)
-            accelerations.append(u)
-            lanes.append(lane)
+            self.buffer.add(slot.x, u, lane, reward, next_x, terminated)
+            slot.states.append(slot.x)
+            slot.accelerations.append(u)
+            slot.lanes.append(lane)
+            slot.recorder.add(next_obs, reward)
+            slot.obs, slot.x = next_obs, next_x
             self.progress.global_step += 1
-            for _ in range(self.agent.updates_due(1)):
-                metrics = self.agent.update(self.buffer.sample(cfg.ddpg.batch_size))
-                losses.append(metrics["critic_loss"])
-            recorder.add(next_obs, reward)
-            obs, x = next_obs, next_x
             if terminated or truncated:
-                break
-        q = self.agent.q_values(np.stack(states), np.array(accelerations))
-        q_mean = float(np.mean(np.take_along_axis(q, np.array(lanes)[:, None], axis=1)))
-        return recorder.summary(), losses, q_mean
+                finished.append(self._finish(slot))
+                self._slots[i] = None
+        for _ in range(self.agent.updates_due(len(slots))):
+            metrics = self.agent.update(self.buffer.sample(self.config.ddpg.batch_size))
+            self._losses.append(metrics["critic_loss"])
+        return finished
 
-    def _act(self, obs: Any, x: np.ndarray) -> tuple[float, int]:
+    def _start_episodes(self) -> None:
+        """Reset every server without a running episode (at once), each with the next seed."""
+        seeds: dict[int, int | None] = {}
+        for i, slot in enumerate(self._slots):
+            if slot is None:
+                seeds[i] = self.config.seed + self._episodes_started
+                self._episodes_started += 1
+        for i, (_, info) in self.vec.reset_each(seeds).items():
+            obs = info["observation"]
+            seed = int(info["seed"])
+            recorder = EpisodeRecorder(self._episodes_started, seed, self.env.step_length)
+            recorder.add(obs)
+            self.agent.reset_noise(i)
+            self._slots[i] = _Slot(seed, obs, self.features(obs), recorder)
+
+    def _finish(self, slot: _Slot) -> Finished:
+        q = self.agent.q_values(np.stack(slot.states), np.array(slot.accelerations))
+        q_mean = float(np.mean(np.take_along_axis(q, np.array(slot.lanes)[:, None], axis=1)))
+        losses, self._losses = self._losses, []
+        return slot.recorder.summary(), losses, q_mean
+
+    def _act(self, slots: list[_Slot]) -> tuple[list[float], list[int]]:
         """Warm-up actions before learning starts, the noisy policy afterwards."""
         cfg = self.config
         fraction = min(1.0, self.progress.global_step / max(cfg.noise_decay_steps, 1))
         self.agent.noise_scale = 1.0 + (cfg.noise_final - 1.0) * fraction
         if self.progress.global_step >= cfg.ddpg.learning_starts:
-            return self.agent.act(x, explore=True)
+            us, lanes = self.agent.act_batch(np.stack([slot.x for slot in slots]), explore=True)
+            return [float(u) for u in us], [int(lane) for lane in lanes]
+        actions = [self._warmup_action(slot.obs) for slot in slots]
+        return [u for u, _ in actions], [lane for _, lane in actions]
+
+    def _warmup_action(self, obs: Observation) -> tuple[float, int]:
+        cfg = self.config
         if cfg.warmup_policy == "idm":
             acceleration, _ = self.idm.act(obs)
             u = self.scale.to_policy(acceleration) + self.rng.normal(0.0, cfg.ddpg.noise_sigma)

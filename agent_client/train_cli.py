@@ -8,6 +8,8 @@ from collections import deque
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from protocol.transport import DEFAULT_ADDRESS
+
 if TYPE_CHECKING:
     from agent_client.config import TrainConfig
 
@@ -19,7 +21,7 @@ def add_train_parser(commands: Any, add_connection_arguments: Any) -> None:
         description="Train a driver through the bridge. Settings: defaults < --config FILE < "
         "flags < --set KEY=VALUE. Every setting and its default: docs/learner.md.",
     )
-    add_connection_arguments(train)
+    add_connection_arguments(train, several=True)
     train.add_argument("--out", type=Path, help="run folder (default runs/SCENARIO-REWARD-SEED)")
     train.add_argument("--reward", help="safe (default), ra1, ra2, ra3, ra4 or rlc")
     train.add_argument("--episodes", type=int, help="training episodes (default 300)")
@@ -134,7 +136,8 @@ def run_train(args: argparse.Namespace) -> int:
         config = build_config(args)
         out = args.out or Path("runs") / f"{config.scenario}-{config.reward}-{config.seed}"
     reporter = BarReporter(config.episodes, 0, args.quiet)
-    trainer = Trainer(config, args.server, out, args.timeout, reporter, args.retry_for)
+    servers = args.server or [DEFAULT_ADDRESS]
+    trainer = Trainer(config, servers, out, args.timeout, reporter, args.retry_for)
     try:
         reporter.message(
             f"training {config.ddpg.algo} on {config.scenario} with reward {config.reward} "
