@@ -95,6 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="allow binding a non-loopback address without authentication",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="run N servers (one simulation each) on consecutive ports from --bind (port 0: free "
+        "ports), print one readiness line per worker, restart any that dies (default 1)",
+    )
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
     parser.add_argument("--version", action="version", version=f"sim-server {__version__}")
     return parser
@@ -181,6 +188,13 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--sumocfg {args.sumocfg}: no such file")
         if not args.ego_route:
             parser.error("--sumocfg needs --ego-route (a route id defined in your route files)")
+
+    if args.workers < 1:
+        parser.error("--workers must be at least 1")
+    if args.workers > 1:
+        from sim_server.workers import run_workers
+
+        return run_workers(argv, args.bind, args.workers)
 
     backend = make_backend(args)
     session = Session(backend, args.max_frame_bytes, args.session_timeout)
