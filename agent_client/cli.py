@@ -140,15 +140,20 @@ def load_driver(spec: str):  # type: ignore[no-untyped-def]
 def run_drive(args: argparse.Namespace) -> int:
     from agent_client.drive import aggregate, drive
     from agent_client.metrics import format_summary
+    from agent_client.policy import training_settings
     from agent_client.remote_env import RemoteEnv
 
     driver = load_driver(args.policy)
+    trained_scenario, trained_options = training_settings(args.policy)
+    args.scenario = args.scenario or trained_scenario or "cf"
+    if args.scenario != trained_scenario:
+        trained_options = {}
     env = RemoteEnv(
         args.server,
-        args.scenario or "cf",
+        args.scenario,
         reward=args.reward,
         timeout_s=args.timeout,
-        **dict(args.option),
+        **{**trained_options, **dict(args.option)},
     )
     try:
         summaries = []
@@ -163,7 +168,7 @@ def run_drive(args: argparse.Namespace) -> int:
     if not args.json:
         totals = aggregate(summaries)
         print(
-            f"{args.policy} on {args.scenario or 'cf'}: {len(summaries)} episodes | "
+            f"{args.policy} on {args.scenario}: {len(summaries)} episodes | "
             f"avg speed {totals['average_speed']:.2f} m/s (sd {totals['average_speed_sd']:.2f}), "
             f"{totals['speed_ratio_to_ceiling']:.3f}x the leader-at-entry ceiling | "
             f"collisions/episode {totals['collisions_per_episode']:.2f} | "

@@ -205,12 +205,19 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from agent_client.cli import load_driver
     from agent_client.evaluation import DriverRun, EpisodeRecord, Evaluation, evaluate_driver
     from agent_client.metrics import format_summary
+    from agent_client.policy import training_settings
     from agent_client.remote_env import RemoteEnv
     from agent_client.report import write_report
     from agent_client.run_log import EPISODE_CSV, read_rows
     from protocol.version import PROTOCOL_VERSION, format_version
 
-    scenario = args.scenario or "cf"
+    trained_scenario, trained_options = training_settings(args.policy)
+    scenario = args.scenario or trained_scenario or "cf"
+    defaults = trained_options if scenario == trained_scenario else {}
+    options = {**defaults, **dict(args.option)}
+    if defaults:
+        print(f"the policy was trained with {defaults}: evaluating with them (--option overrides)")
+    args.option = sorted(options.items())  # the rerun command names them explicitly
     out = args.out if args.out is not None else default_out(args.policy)
     seeds = list(range(args.seed, args.seed + args.episodes))
     specs = {"policy": args.policy, "baseline": args.baseline}
@@ -220,7 +227,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     training_rows = None
     if args.run_folder is not None:
         training_rows = read_rows(args.run_folder / EPISODE_CSV)
-    env = RemoteEnv(args.server, scenario, timeout_s=args.timeout, **dict(args.option))
+    env = RemoteEnv(args.server, scenario, timeout_s=args.timeout, **options)
     runs: dict[str, DriverRun] = {}
     try:
         for role, driver in drivers.items():

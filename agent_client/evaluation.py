@@ -306,7 +306,8 @@ def table2(rows: Sequence[Mapping[str, str]], lanes: int, bins: int = 10) -> lis
     """Table 2 from a run's ``episodes.csv``: lane-change figures per range of training episodes.
 
     The episodes are split into `bins` consecutive ranges of (nearly) equal size. The reward of
-    successful lane changes is not logged per episode, so it is None.
+    successful lane changes is the mean reward of the steps whose instruction started a change
+    (None for logs written before it was recorded, or a range without any change).
     """
     if not rows:
         return []
@@ -314,6 +315,9 @@ def table2(rows: Sequence[Mapping[str, str]], lanes: int, bins: int = 10) -> lis
     started = _column(rows, "lane_changes_started")
     refused = _column(rows, "lane_changes_refused")
     distance = _column(rows, "distance")
+    lc_reward = (
+        _column(rows, "successful_lc_reward") if "successful_lc_reward" in rows[0] else None
+    )
     table = []
     for chunk in np.array_split(np.arange(len(rows)), min(bins, len(rows))):
         stats = lane_change_stats(
@@ -329,7 +333,9 @@ def table2(rows: Sequence[Mapping[str, str]], lanes: int, bins: int = 10) -> lis
                 "count": len(chunk),
                 "instructions_per_episode": stats["instructions_per_episode"],
                 "success_rate": stats["success_rate"],
-                "reward_of_successful_lc": None,
+                "reward_of_successful_lc": float(lc_reward[chunk].sum() / started[chunk].sum())
+                if lc_reward is not None and started[chunk].sum() > 0
+                else None,
                 "frequency": stats["frequency"],
             }
         )

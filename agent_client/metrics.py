@@ -90,6 +90,8 @@ class EpisodeSummary:
     total_reward: float
     lane_changes_started: int
     lane_changes_refused: int
+    successful_lc_reward: float = 0.0
+    """Sum of the rewards of the steps whose lane-change instruction started a change."""
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -156,6 +158,13 @@ class EpisodeRecorder:
             total_reward=float(sum(self.rewards)),
             lane_changes_started=sum(o.events.lane_change_started for o in observations),
             lane_changes_refused=sum(o.events.lane_change_refused for o in observations),
+            successful_lc_reward=float(
+                sum(
+                    reward
+                    for obs, reward in zip(observations[1:], self.rewards, strict=True)
+                    if obs.events.lane_change_started
+                )
+            ),
         )
 
 

@@ -6,6 +6,7 @@ acceleration scaling, so `agent-client drive --policy runs/NAME/policy.pt` needs
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,3 +75,21 @@ def load_policy_driver(path: Path) -> PolicyDriver:
         FeatureMap(state["features"]),
         ActionScale(low, high),
     )
+
+
+def training_settings(policy: str) -> tuple[str | None, dict[str, Any]]:
+    """The scenario and reset options a policy file was trained with, from its run's config.json.
+
+    A policy trained with ``decision_interval`` 1.0 must also drive with it; drive and evaluate
+    use these as defaults (the command line overrides them). ``(None, {})`` for IDM specs and
+    policies without a run folder.
+    """
+    if policy == "idm" or policy.startswith("idm:"):
+        return None, {}
+    config = Path(policy).parent / "config.json"
+    if not config.is_file():
+        return None, {}
+    saved = json.loads(config.read_text())
+    options = {"decision_interval": saved.get("decision_interval", 0.1)}
+    options.update(saved.get("scenario_options") or {})
+    return saved.get("scenario"), options

@@ -90,7 +90,6 @@ def build_metrics(evaluation: Evaluation) -> dict[str, Any]:
                 "run": evaluation.run_folder,
                 "lanes": lanes,
                 "rows": table2(rows, lanes, evaluation.table2_bins),
-                "reward_of_successful_lc": "not logged: episodes.csv has no per-lane-change reward",
             },
             "integrated_vs_cf": None
             if cf is None
@@ -237,7 +236,7 @@ def _lc_section(metrics: dict[str, Any]) -> list[str]:
                 row["episodes"],
                 _f(row["instructions_per_episode"], 1),
                 _pct(row["success_rate"]),
-                "not logged",
+                _f(row["reward_of_successful_lc"], 3),
                 _f(row["frequency"]),
             ]
             for row in table["rows"]
@@ -266,8 +265,9 @@ def _lc_section(metrics: dict[str, Any]) -> list[str]:
         lines += [
             "",
             "Instructions are lane changes started plus refused (any reason: gap too small, no "
-            "lane, one already in progress). The reward of successful lane changes is "
-            f"{table['reward_of_successful_lc']}.",
+            "lane, one already in progress). The reward of a successful lane change is the "
+            "training reward of the step whose instruction started it (n/a: no change in the "
+            "range, or a log without that column).",
         ]
     lines += ["", "### Lane changes in the evaluation episodes", ""]
     rows = []

@@ -100,15 +100,20 @@ def test_table2_ranges_from_episode_rows() -> None:
     assert table[0]["frequency"] == pytest.approx(2 / (2.0 * 3))
     assert table[1]["success_rate"] == pytest.approx(2 / 3)
     assert table[1]["frequency"] == pytest.approx(2 / (3.0 * 3))
-    assert table[0]["reward_of_successful_lc"] is None
+    assert table[0]["reward_of_successful_lc"] is None  # a log without the column
+    for row, reward in zip(rows, ["0.5", "0", "0.25", "-1.0"], strict=True):
+        row["successful_lc_reward"] = reward
+    table = table2(rows, lanes=3, bins=2)
+    assert table[0]["reward_of_successful_lc"] == pytest.approx(0.5 / 2)
+    assert table[1]["reward_of_successful_lc"] == pytest.approx((0.25 - 1.0) / 2)
     with pytest.raises(ValueError, match="lane_changes_started"):
         table2([{"episode": "1"}], lanes=3)
 
 
 def test_record_episode_from_observations() -> None:
     recorder = EpisodeRecorder(episode=0, seed=5, step_length=0.1)
-    for observation in lc_observations():
-        recorder.add(observation)
+    for observation, reward in zip(lc_observations(), [0.0, 0.75, -0.25], strict=True):
+        recorder.add(observation, reward)
     record = record_episode(recorder)
     assert record.leader_steps == 3
     assert record.lane_count == 3
@@ -116,6 +121,7 @@ def test_record_episode_from_observations() -> None:
     assert len(record.ttcs) == 0  # the ego never closes in
     assert len(record.jerks) == 2
     assert record.summary.lane_changes_started == 2
+    assert record.summary.successful_lc_reward == pytest.approx(0.75 - 0.25)
 
 
 # --------------------------------------------------------------------------- the report

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -7,7 +8,7 @@ import pytest
 
 from agent_client.ddpg import Agent
 from agent_client.features import FeatureMap
-from agent_client.policy import ActionScale, load_policy_driver, save_policy
+from agent_client.policy import ActionScale, load_policy_driver, save_policy, training_settings
 from protocol.messages import ActionSchema
 from tests.protocol.test_codec import make_observation
 
@@ -34,3 +35,17 @@ def test_a_saved_policy_drives_like_the_agent(tmp_path: Path) -> None:
     assert acceleration == pytest.approx(scale.to_env(u))
     assert lane_change == (0, 1, -1)[lane]
     assert np.isfinite(acceleration)
+
+
+def test_training_settings_come_from_the_run_folder(tmp_path: Path) -> None:
+    (tmp_path / "config.json").write_text(
+        json.dumps(
+            {"scenario": "cflc", "decision_interval": 1.0, "scenario_options": {"flow": 900}}
+        )
+    )
+    assert training_settings(str(tmp_path / "policy.pt")) == (
+        "cflc",
+        {"decision_interval": 1.0, "flow": 900},
+    )
+    assert training_settings("idm") == (None, {})
+    assert training_settings(str(tmp_path / "elsewhere" / "policy.pt")) == (None, {})

@@ -146,13 +146,14 @@ def test_the_saved_policy_reloads_and_drives(sumo_server: RunningServer, tmp_pat
     assert json.loads((out / "config.json").read_text())["decision_interval"] == 1.0
     driven = subprocess.run(
         [sys.executable, "-m", "agent_client.cli", "drive", "--server", sumo_server.address,
-         "--policy", str(out / "policy.pt"), "--episodes", "1", "--json",
-         "--option", "decision_interval=1.0"],
+         "--policy", str(out / "policy.pt"), "--episodes", "1", "--json"],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     assert driven.returncode == 0, driven.stderr
     episode = json.loads(driven.stdout.splitlines()[0])
     assert episode["steps"] > 0
+    # It drives with the decision interval it was trained with (the run's config.json).
+    assert episode["duration"] / episode["steps"] == pytest.approx(1.0, rel=0.05)
 
 
 def test_lane_changing_training_runs_on_cflc(sumo_server: RunningServer, tmp_path: Path) -> None:
