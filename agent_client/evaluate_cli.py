@@ -250,7 +250,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         versions={
             "server": welcome.server,
             "backend": welcome.backend,
-            "backend (SUMO) version": welcome.backend_version,
+            "backend version": welcome.backend_version,
             "agent_client version": __version__,
             "protocol version (client / server)": f"{format_version(PROTOCOL_VERSION)} / "
             f"{format_version(welcome.protocol)}",

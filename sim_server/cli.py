@@ -24,7 +24,7 @@ from sim_server.server import DEFAULT_SESSION_TIMEOUT_S, Server, Session, format
 SECRET_KEY_ENV = "SIM_SERVER_SECRET_KEY"
 AUTHORIZED_KEYS_ENV = "SIM_SERVER_AUTHORIZED_KEYS"
 
-BACKENDS = ("sumo", "fake")
+BACKENDS = ("sumo", "fake", "highway")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,7 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--backend",
         choices=BACKENDS,
         default="sumo",
-        help="simulator: sumo (libsumo, in-process) or fake (kinematic toy for tests)",
+        help="simulator: sumo (libsumo, in-process), highway (highway-env) or fake (kinematic "
+        "toy for tests)",
     )
     parser.add_argument(
         "--sumocfg",
@@ -112,6 +113,10 @@ def make_backend(args: argparse.Namespace) -> Backend:
         from sim_server.fake_backend import FakeBackend
 
         return FakeBackend()
+    if args.backend == "highway":
+        from sim_server.highway_backend import HighwayBackend
+
+        return HighwayBackend()
     from sim_server.scenarios import CustomScenario
     from sim_server.sumo_backend import SumoBackend
 
@@ -184,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
             "--insecure on a trusted network"
         )
     if args.sumocfg is not None:
+        if not args.backend.startswith("sumo"):
+            parser.error(f"--sumocfg needs a SUMO backend, not --backend {args.backend}")
         if not args.sumocfg.is_file():
             parser.error(f"--sumocfg {args.sumocfg}: no such file")
         if not args.ego_route:

@@ -161,7 +161,7 @@ def synthetic_evaluation(lanes: int) -> Evaluation:
         scenario="cflc" if lanes > 1 else "cf",
         seeds=[0, 1, 2, 3],
         options={"max_episode_time": 100.0},
-        versions={"backend (SUMO) version": "1.28.0", "agent_client version": "0.1.0"},
+        versions={"backend version": "1.28.0", "agent_client version": "0.1.0"},
         command="agent-client evaluate --policy p.pt",
         policy=run("runs/x/policy.pt", 13.0),
         baseline=run("idm", 12.0),

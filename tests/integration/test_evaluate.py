@@ -96,7 +96,7 @@ def test_evaluate_cf_writes_a_full_report(
         assert needle in text, needle
     metrics = strict_json(out / "metrics.json")
     assert metrics["seeds"] == [11, 12]
-    assert metrics["versions"]["backend (SUMO) version"].startswith("1.28")
+    assert metrics["versions"]["backend version"].startswith("1.28")
     for role in ("policy", "baseline"):
         driver = metrics["drivers"][role]
         assert driver["per_episode"]["seed"] == [11, 12]  # the same seeds for both
