@@ -315,9 +315,7 @@ def table2(rows: Sequence[Mapping[str, str]], lanes: int, bins: int = 10) -> lis
     started = _column(rows, "lane_changes_started")
     refused = _column(rows, "lane_changes_refused")
     distance = _column(rows, "distance")
-    lc_reward = (
-        _column(rows, "successful_lc_reward") if "successful_lc_reward" in rows[0] else None
-    )
+    lc_reward = _column(rows, "successful_lc_reward") if "successful_lc_reward" in rows[0] else None
     table = []
     for chunk in np.array_split(np.arange(len(rows)), min(bins, len(rows))):
         stats = lane_change_stats(
