@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import platform
-import selectors
 import signal
 import subprocess
 import sys
@@ -41,6 +40,7 @@ from agent_client.connection import Connection  # noqa: E402
 from agent_client.idm import IDMDriver  # noqa: E402
 from protocol.messages import Observation, OptionValue, Reset, Step  # noqa: E402
 from sim_server.highway_backend import HighwayBackend  # noqa: E402
+from sim_server.readiness import LISTENING, wait_for_line  # noqa: E402
 
 StepFn = Callable[[int, float, int], Observation]
 ResetFn = Callable[[int], Observation]
@@ -101,16 +101,8 @@ def server() -> Iterator[str]:
     command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
                "--backend", "highway", "--log-level", "WARNING"]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, cwd=ROOT)
-    assert process.stdout is not None
     try:
-        selector = selectors.DefaultSelector()
-        selector.register(process.stdout, selectors.EVENT_READ)
-        if not selector.select(timeout=60.0):
-            raise RuntimeError("sim-server did not start within 60 s")
-        line = process.stdout.readline()
-        if not line.startswith("listening on "):
-            raise RuntimeError(f"unexpected first line from sim-server: {line!r}")
-        yield line.removeprefix("listening on ").strip()
+        yield wait_for_line(process, LISTENING, 60.0)
     finally:
         process.send_signal(signal.SIGTERM)
         process.wait(timeout=30)

@@ -37,6 +37,7 @@ from agent_client.connection import Connection, ServerError, ServerTimeout  # no
 from agent_client.idm import IDMDriver  # noqa: E402
 from protocol.messages import Close, Hello, Observation, Reset, Step  # noqa: E402
 from protocol.version import PROTOCOL_VERSION  # noqa: E402
+from sim_server.readiness import LISTENING, NotReady, wait_for_line  # noqa: E402
 
 CRASHING_LEARNER = """
 import sys
@@ -78,25 +79,6 @@ def rss_mb(pid: int) -> float:
     raise RuntimeError(f"no VmRSS for pid {pid}")
 
 
-def read_line(process: subprocess.Popen[str], prefix: str, timeout_s: float) -> str:
-    """Wait for a line starting with `prefix` on the process's stdout (its readiness signal)."""
-    import selectors
-
-    assert process.stdout is not None
-    deadline = time.monotonic() + timeout_s
-    with selectors.DefaultSelector() as selector:
-        selector.register(process.stdout, selectors.EVENT_READ)
-        while time.monotonic() < deadline:
-            if not selector.select(max(0.0, deadline - time.monotonic())):
-                break
-            line = process.stdout.readline()
-            if not line:
-                break
-            if line.startswith(prefix):
-                return line[len(prefix) :].strip()
-    raise RuntimeError(f"no {prefix!r} line within {timeout_s} s")
-
-
 def start_server(backend: str) -> tuple[subprocess.Popen[str], str]:
     command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0"]
     process = subprocess.Popen(
@@ -105,8 +87,8 @@ def start_server(backend: str) -> tuple[subprocess.Popen[str], str]:
         text=True,
     )
     try:
-        return process, read_line(process, "listening on ", 120.0)
-    except RuntimeError:
+        return process, wait_for_line(process, LISTENING, 120.0)
+    except NotReady:
         process.kill()
         raise
 
@@ -161,7 +143,7 @@ def crash_a_learner(address: str, scenario: str, seed: int, steps: int) -> None:
         cwd=ROOT,
     )
     try:
-        read_line(process, "stepping", 120.0)
+        wait_for_line(process, "stepping", 120.0)
     finally:
         process.send_signal(signal.SIGKILL)
         process.wait(timeout=30)

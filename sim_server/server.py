@@ -37,6 +37,7 @@ from protocol.transport import HEARTBEAT_TIMEOUT_MS, Endpoint, bind_router, remo
 from protocol.version import PROTOCOL_VERSION, format_version, is_compatible
 from sim_server import __version__
 from sim_server.backend import Backend, BackendError
+from sim_server.readiness import LISTENING
 
 log = logging.getLogger("sim_server")
 
@@ -343,4 +344,4 @@ def _source_fd(frame: zmq.Frame) -> int | None:
 
 def format_listening(endpoint: Endpoint) -> str:
     """The readiness line scripts wait for."""
-    return f"listening on {endpoint}"
+    return f"{LISTENING}{endpoint}"

@@ -10,7 +10,6 @@ SIGTERM or Ctrl-C.
 from __future__ import annotations
 
 import logging
-import selectors
 import signal
 import subprocess
 import sys
@@ -20,6 +19,7 @@ from dataclasses import dataclass
 from types import FrameType
 
 from protocol.transport import Endpoint, parse_endpoint
+from sim_server.readiness import LISTENING, NotReady, wait_for_line
 from sim_server.server import format_listening
 
 log = logging.getLogger("sim_server")
@@ -89,24 +89,14 @@ class Supervisor:
         )
 
     def _wait_ready(self, worker: Worker) -> str:
-        process = worker.process
-        assert process is not None and process.stdout is not None
-        prefix = "listening on "
-        deadline = time.monotonic() + READY_TIMEOUT_S
-        with selectors.DefaultSelector() as selector:
-            selector.register(process.stdout, selectors.EVENT_READ)
-            while time.monotonic() < deadline:
-                if not selector.select(max(0.0, deadline - time.monotonic())):
-                    break
-                line = process.stdout.readline()
-                if not line:
-                    break
-                if line.startswith(prefix):
-                    return line[len(prefix) :].strip()
-        raise RuntimeError(
-            f"worker {worker.index} ({worker.address}) did not become ready "
-            f"(exit status {process.poll()}); see its log above"
-        )
+        assert worker.process is not None
+        try:
+            return wait_for_line(worker.process, LISTENING, READY_TIMEOUT_S)
+        except NotReady as exc:
+            raise RuntimeError(
+                f"worker {worker.index} ({worker.address}) did not become ready ({exc}); "
+                "see its log above"
+            ) from exc
 
     def supervise(self) -> None:
         """Until `stop`: restart any worker that exits, on the same address."""

@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import os
-import selectors
 import signal
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from sim_server import readiness
 
 READY_TIMEOUT_S = 60.0
 
@@ -28,25 +28,13 @@ class RunningServer:
 
 
 def wait_for_line(process: subprocess.Popen[str], prefix: str, timeout_s: float) -> str:
-    """Read stdout until a line starting with `prefix` (the readiness signal), or fail."""
-    assert process.stdout is not None
-    selector = selectors.DefaultSelector()
-    selector.register(process.stdout, selectors.EVENT_READ)
-    deadline = time.monotonic() + timeout_s
+    """Read stdout until a line starting with `prefix` (the readiness signal), or kill and fail."""
     try:
-        while time.monotonic() < deadline:
-            if not selector.select(timeout=max(0.0, deadline - time.monotonic())):
-                break
-            line = process.stdout.readline()
-            if not line:
-                break  # the process closed stdout: it died
-            if line.startswith(prefix):
-                return line[len(prefix) :].strip()
-    finally:
-        selector.close()
-    process.kill()
-    _, stderr = process.communicate(timeout=10)
-    raise RuntimeError(f"sim-server did not print {prefix!r} within {timeout_s} s:\n{stderr}")
+        return readiness.wait_for_line(process, prefix, timeout_s)
+    except readiness.NotReady as exc:
+        process.kill()
+        process.wait(timeout=10)
+        raise RuntimeError(f"sim-server did not print {prefix!r}: {exc}") from exc
 
 
 @contextmanager
