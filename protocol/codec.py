@@ -4,6 +4,14 @@ Decoding never trusts the peer: it checks the frame size, the msgpack structure,
 type and that every number is finite, and raises `ProtocolError` with a distinct `ErrorCode` for
 each kind of fault. Map keys the receiver does not know are ignored (forward compatibility within
 a major version); missing keys fall back to the field's default or are an error.
+
+Both directions are compiled once per message class from its dataclass fields and type hints
+(as `dataclasses` compiles ``__init__``): an encoder builds the wire map with one dict display,
+a decoder checks each field with an inline test of its exact msgpack type (``type(v) is float and
+isfinite(v)``) and hands anything that fails it to the precise converter, which converts (an
+integer where a float is expected) or raises the field's error. The wire format is unchanged:
+`_to_wire` is the reference the compiled encoders are tested against, and the fallback for values
+of unexpected types.
 """
 
 from __future__ import annotations
@@ -36,9 +44,10 @@ _REPLIES = {cls.TYPE: cls for cls in REPLY_TYPES}
 
 def encode(message: Message) -> bytes:
     """Serialise a message to one msgpack frame (a map whose ``type`` key names the message)."""
-    wire = {"type": message.TYPE}
-    wire.update(_to_wire(message))
-    return msgpack.packb(wire, use_bin_type=True)
+    encoder = _ENCODERS.get(type(message))
+    if encoder is None:
+        encoder = _ENCODERS[type(message)] = _compile_encoder(type(message), top=True)
+    return msgpack.packb(encoder(message), use_bin_type=True)
 
 
 def decode_request(frame: bytes, max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES) -> Message:
@@ -79,6 +88,13 @@ def _decode(frame: bytes, allowed: dict[str, type], max_frame_bytes: int) -> Mes
     return typing.cast(Message, _converter(cls)(raw, kind))
 
 
+def _wire_map(message: Any) -> dict[str, Any]:
+    """The reference encoding of a message (generic, slow): what `encode` must produce."""
+    wire = {"type": message.TYPE}
+    wire.update(_to_wire(message))
+    return wire
+
+
 # --------------------------------------------------------------------------- to the wire
 
 
@@ -101,6 +117,70 @@ def _to_wire(value: Any) -> Any:
 @cache
 def _field_names(cls: type) -> tuple[str, ...]:
     return tuple(f.name for f in dataclasses.fields(cls))
+
+
+_ENCODERS: dict[type, Callable[[Any], dict[str, Any]]] = {}
+
+_PASS_THROUGH = (float, int, bool, str, type(None))
+"""Hints whose values msgpack packs exactly as `_to_wire` would (IntEnum packs as int)."""
+
+
+def _passes_through(hint: Any) -> bool:
+    """True when `_to_wire(value)` packs to the same bytes as the value itself."""
+    if hint in _PASS_THROUGH:
+        return True
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return all(_passes_through(a) for a in args)
+    if origin is tuple:  # a tuple packs as an array, like `_to_wire`'s list
+        return all(a is Ellipsis or _passes_through(a) for a in args)
+    if origin is dict:
+        return args[0] is str and _passes_through(args[1])
+    return False
+
+
+def _compile_encoder(cls: type, top: bool = False) -> Callable[[Any], dict[str, Any]]:
+    """One function building the wire map of `cls` (its ``type`` key first when `top`).
+
+    Scalar fields go into the map as they are; dataclass fields through their own compiled
+    encoder (when the value is of the declared class); anything else through `_to_wire`.
+    """
+    hints = typing.get_type_hints(cls)
+    env: dict[str, Any] = {"_to_wire": _to_wire}
+    items = [f"'type': {cls.TYPE!r}"] if top else []  # type: ignore[attr-defined]
+    for i, f in enumerate(dataclasses.fields(cls)):
+        hint = hints[f.name]
+        value = f"o.{f.name}"
+        nested = [a for a in typing.get_args(hint) if a is not type(None)]
+        if _passes_through(hint):
+            expr = value
+        elif dataclasses.is_dataclass(hint):
+            env[f"c{i}"], env[f"e{i}"] = hint, _encoder(typing.cast(type, hint))
+            expr = f"e{i}(x) if type(x := {value}) is c{i} else _to_wire(x)"
+        elif (
+            typing.get_origin(hint) in (typing.Union, types.UnionType)
+            and type(None) in typing.get_args(hint)
+            and len(nested) == 1
+            and dataclasses.is_dataclass(nested[0])
+        ):
+            env[f"c{i}"], env[f"e{i}"] = nested[0], _encoder(typing.cast(type, nested[0]))
+            expr = f"None if (x := {value}) is None else " + (
+                f"e{i}(x) if type(x) is c{i} else _to_wire(x)"
+            )
+        else:
+            expr = f"_to_wire({value})"
+        items.append(f"{f.name!r}: ({expr})")
+    source = "def encode(o):\n    return {" + ", ".join(items) + "}\n"
+    exec(source, env)  # the source is built above from field names only
+    encoder: Callable[[Any], dict[str, Any]] = env["encode"]
+    encoder.__qualname__ = f"encode_{cls.__name__}"
+    return encoder
+
+
+@cache
+def _encoder(cls: type) -> Callable[[Any], dict[str, Any]]:
+    """The compiled encoder of a nested (not top-level) dataclass."""
+    return _compile_encoder(cls)
 
 
 # --------------------------------------------------------------------------- from the wire
@@ -254,26 +334,104 @@ def _converter_for(hint: Any) -> Converter:
     raise TypeError(f"no wire converter for {hint!r}")
 
 
+def _guard(hint: Any, v: str) -> str | None:
+    """A Python expression true when the msgpack value named `v` is already valid for `hint`.
+
+    msgpack hands out exact built-in types, so ``type(v) is float`` is exact. Values that fail
+    the guard go to the field's converter, which converts them or raises the precise error.
+    """
+    if hint is float:
+        return f"type({v}) is float and isfinite({v})"
+    if hint is int:
+        return f"type({v}) is int and {-_INT64} <= {v} < {_INT64}"
+    if hint is bool:
+        return f"({v} is True or {v} is False)"
+    if hint is str:
+        return f"type({v}) is str and len({v}) <= {_MAX_STRING}"
+    if hint is type(None):
+        return f"{v} is None"
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        guards = [_guard(a, v) for a in typing.get_args(hint)]
+        if all(guards):
+            return " or ".join(f"({g})" for g in guards)
+    return None
+
+
 @cache
 def _converter(cls: type) -> Converter:
-    """Build (once per class) a function that turns a wire map into an instance of `cls`."""
+    """Compile (once per class) a function that turns a wire map into an instance of `cls`.
+
+    Fields are checked in declaration order, so the first fault reported is the same whatever
+    path found it; the instance is built positionally.
+    """
     hints = typing.get_type_hints(cls)
-    fields = []
-    for f in dataclasses.fields(cls):
-        has_default = (
-            f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
-        )
-        fields.append((f.name, has_default, _converter_for(hints[f.name])))
-
-    def convert(value: Any, path: str) -> Any:
-        if not isinstance(value, dict):
-            raise _invalid(path, "a map", value)
-        kwargs = {}
-        for name, has_default, field_converter in fields:
-            if name in value:
-                kwargs[name] = field_converter(value[name], f"{path}.{name}")
-            elif not has_default:
-                raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: missing field {name!r}")
-        return cls(**kwargs)
-
+    env: dict[str, Any] = {
+        "cls": cls,
+        "isfinite": math.isfinite,
+        "_invalid": _invalid,
+        "_missing": _missing,
+        "_MISSING": _MISSING,
+    }
+    lines = [
+        "def convert(value, path):",
+        "    if type(value) is not dict:",
+        "        raise _invalid(path, 'a map', value)",
+        "    get = value.get",
+    ]
+    names = []
+    for i, f in enumerate(dataclasses.fields(cls)):
+        if not f.init or f.kw_only:
+            raise TypeError(f"{cls.__name__}.{f.name}: only positional init fields are supported")
+        v = f"v{i}"
+        names.append(v)
+        env[f"c{i}"] = _converter_for(hints[f.name])
+        lines.append(f"    {v} = get({f.name!r}, _MISSING)")
+        lines.append(f"    if {v} is _MISSING:")
+        if f.default is not dataclasses.MISSING:
+            env[f"d{i}"] = f.default
+            lines.append(f"        {v} = d{i}")
+        elif f.default_factory is not dataclasses.MISSING:
+            env[f"d{i}"] = f.default_factory
+            lines.append(f"        {v} = d{i}()")
+        else:
+            lines.append(f"        raise _missing(path, {f.name!r})")
+        guard = _guard(hints[f.name], v)
+        lines.append(f"    elif not ({guard}):" if guard else "    else:")
+        lines.append(f"        {v} = c{i}({v}, path + {'.' + f.name!r})")
+    setters = _slot_setters(cls)
+    if setters is None:
+        lines.append(f"    return cls({', '.join(names)})")
+    else:  # what the frozen dataclass __init__ does, without its per-field object.__setattr__
+        env["new"] = object.__new__
+        env.update({f"s{i}": setter for i, setter in enumerate(setters)})
+        lines.append("    o = new(cls)")
+        lines.extend(f"    s{i}(o, {v})" for i, v in enumerate(names))
+        lines.append("    return o")
+    exec("\n".join(lines) + "\n", env)  # built above from field names only
+    convert: Converter = env["convert"]
+    convert.__qualname__ = f"decode_{cls.__name__}"
     return convert
+
+
+_MISSING = object()
+
+
+def _slot_setters(cls: type) -> list[Callable[[Any, Any], None]] | None:
+    """The slot setters of a ``slots=True`` dataclass whose __init__ only stores its fields.
+
+    Filling the slots directly builds the same instance as calling the class, twice as fast
+    for a frozen dataclass; None (call the class) when __init__ may do more than that.
+    """
+    if hasattr(cls, "__post_init__") or "__slots__" not in vars(cls):
+        return None
+    setters = []
+    for f in dataclasses.fields(cls):
+        slot = vars(cls).get(f.name)
+        if not isinstance(slot, types.MemberDescriptorType):
+            return None
+        setters.append(slot.__set__)
+    return setters
+
+
+def _missing(path: str, name: str) -> ProtocolError:
+    return ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: missing field {name!r}")

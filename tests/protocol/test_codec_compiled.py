@@ -1,0 +1,282 @@
+"""The compiled encoders and decoders against the generic reference they replaced.
+
+`encode` must write the same bytes as the generic dataclass walk (`codec._wire_map`), and the
+compiled decoders must accept, convert and refuse exactly what the generic converter did, with
+the same error code and message: a reference decoder written the generic way is the oracle here.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import types
+import typing
+from enum import IntEnum
+from typing import Any
+
+import msgpack
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocol import codec
+from protocol.codec import decode_reply, decode_request, encode
+from protocol.errors import ProtocolError
+from protocol.messages import (
+    REPLY_TYPES,
+    REQUEST_TYPES,
+    AppliedAction,
+    Ego,
+    Events,
+    LaneChange,
+    LeaderTrip,
+    Neighbour,
+    Neighbours,
+    Observation,
+    Step,
+)
+from tests.protocol.test_codec import REPLIES, REQUESTS
+
+# --------------------------------------------------------------------------- the reference
+
+
+def reference_converter(hint: Any) -> codec.Converter:
+    """The generic converter (field by field, kwargs, the class's own __init__)."""
+    scalars: dict[Any, codec.Converter] = {
+        float: codec._as_float,
+        int: codec._as_int,
+        bool: codec._as_bool,
+        str: codec._as_str,
+        type(None): codec._as_none,
+    }
+    if hint in scalars:
+        return scalars[hint]
+    if dataclasses.is_dataclass(hint):
+        return reference_dataclass(typing.cast(type, hint))
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        names = " or ".join(getattr(a, "__name__", str(a)) for a in args)
+        return codec._union([reference_converter(a) for a in args], names)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return codec._tuple(reference_converter(args[0]), None)
+        items = [reference_converter(a) for a in args]
+
+        def fixed(value: Any, path: str) -> tuple[Any, ...]:
+            values = codec._tuple(codec._scalar, len(items))(value, path)
+            return tuple(
+                c(v, f"{path}[{i}]") for i, (c, v) in enumerate(zip(items, values, strict=True))
+            )
+
+        return fixed
+    if origin is dict:
+        if typing.get_origin(args[1]) in (typing.Union, types.UnionType):
+            return codec._mapping(codec._scalar)
+        return codec._mapping(reference_converter(args[1]))
+    raise TypeError(hint)
+
+
+def reference_dataclass(cls: type) -> codec.Converter:
+    hints = typing.get_type_hints(cls)
+    fields = [
+        (
+            f.name,
+            f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING,
+            reference_converter(hints[f.name]),
+        )
+        for f in dataclasses.fields(cls)
+    ]
+
+    def convert(value: Any, path: str) -> Any:
+        if not isinstance(value, dict):
+            raise codec._invalid(path, "a map", value)
+        kwargs = {}
+        for name, has_default, field_converter in fields:
+            if name in value:
+                kwargs[name] = field_converter(value[name], f"{path}.{name}")
+            elif not has_default:
+                raise ProtocolError(
+                    codec.ErrorCode.INVALID_MESSAGE, f"{path}: missing field {name!r}"
+                )
+        return cls(**kwargs)
+
+    return convert
+
+
+def outcome(convert: codec.Converter, raw: Any, path: str) -> tuple[str, Any]:
+    """The verdict: the value (its repr too, so that 1 and 1.0 differ) or the error."""
+    try:
+        value = convert(raw, path)
+    except ProtocolError as exc:
+        return "error", (exc.code, exc.message)
+    return "ok", (value, repr(value))
+
+
+# --------------------------------------------------------------------------- strategies
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+text = st.text(max_size=12)
+
+
+@st.composite
+def neighbours(draw: st.DrawFn) -> Neighbour:
+    return Neighbour(draw(st.booleans()), draw(finite), draw(finite), draw(finite), draw(text))
+
+
+@st.composite
+def observations(draw: st.DrawFn) -> Observation:
+    six = [draw(neighbours()) for _ in range(6)]
+    ceiling = draw(
+        st.none() | st.builds(LeaderTrip, text, finite, st.none() | finite, st.none() | finite)
+    )
+    return Observation(
+        seq=draw(st.integers(0, 2**63 - 1)),
+        time=draw(finite),
+        ego=Ego(draw(finite), draw(finite), draw(st.integers(0, 5)), 3, draw(finite), 22.2),
+        neighbours=Neighbours(*six),
+        events=Events(*(draw(st.booleans()) if i != 1 else draw(text) for i in range(7))),
+        action=AppliedAction(
+            draw(finite), draw(st.sampled_from([-1, 0, 1])), draw(finite), 0, draw(text), ""
+        ),
+        terminated=draw(st.booleans()),
+        truncated=draw(st.booleans()),
+        reason=draw(text),
+        ceiling=ceiling,
+    )
+
+
+ODD = (
+    [None, True, False, 0, 1, -1, 2**63, -(2**63) - 1, 2**64 - 1, 1.5, -0.0, math.nan, math.inf,
+     -math.inf, "", "x", "y" * 5000, [], [1, 2], {}, {"a": 1}, b"bytes"]
+)  # fmt: skip
+ODD_VALUES = st.sampled_from(ODD).map(copy.deepcopy)  # later mutations must not reach ODD
+
+
+@st.composite
+def mutated(draw: st.DrawFn, wire: dict[str, Any]) -> dict[str, Any]:
+    """`wire` with a few of its (possibly nested) values replaced, removed or added."""
+    wire = msgpack.unpackb(msgpack.packb(wire), raw=False)  # a deep copy, as a peer sends it
+    for _ in range(draw(st.integers(1, 3))):
+        target = wire
+        while True:
+            if not target:
+                break
+            key = draw(st.sampled_from(sorted(target)))
+            if isinstance(target[key], dict) and draw(st.booleans()):
+                target = target[key]
+                continue
+            break
+        action = draw(st.sampled_from(["replace", "remove", "add", "int"]))
+        if not target or action == "add":
+            target[draw(text)] = draw(ODD_VALUES)
+        elif action == "replace":
+            target[key] = draw(ODD_VALUES)
+        elif action == "remove":
+            del target[key]
+        elif isinstance(target[key], float) and target[key].is_integer():
+            target[key] = int(target[key])  # an integral float sent as an int
+    return wire
+
+
+# --------------------------------------------------------------------------- encoding
+
+
+@pytest.mark.parametrize("message", REQUESTS + REPLIES, ids=lambda m: type(m).__name__)
+def test_encode_writes_the_bytes_of_the_generic_walk(message: Any) -> None:
+    assert encode(message) == msgpack.packb(codec._wire_map(message), use_bin_type=True)
+
+
+@settings(max_examples=300, deadline=None)
+@given(obs=observations())
+def test_observations_encode_like_the_generic_walk_and_round_trip(obs: Observation) -> None:
+    frame = encode(obs)
+    assert frame == msgpack.packb(codec._wire_map(obs), use_bin_type=True)
+    assert decode_reply(frame) == obs
+
+
+def test_an_int_enum_goes_on_the_wire_as_a_plain_int() -> None:
+    assert encode(Step(1, 0.5, LaneChange.LEFT)) == encode(Step(1, 0.5, 1))
+
+
+def test_a_value_of_an_unexpected_class_still_goes_through_the_generic_walk() -> None:
+    class Lane(IntEnum):
+        LEFT = 2
+
+    obs = Observation(
+        1, 1.0, Ego(1.0, 0.0, Lane.LEFT, 3, 1.0, 1.0), Neighbours(*[Neighbour(False, 0, 0, 0)] * 6),
+        Events(), AppliedAction(0.0, 0, 0.0, 0),
+    )  # fmt: skip
+    assert encode(obs) == msgpack.packb(codec._wire_map(obs), use_bin_type=True)
+    with pytest.raises(TypeError):
+        encode(Step(1, object(), 0))  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------- decoding
+
+
+def test_integers_sent_for_floats_become_floats() -> None:
+    wire = codec._wire_map(REPLIES[1])
+    wire["time"], wire["ego"]["speed"] = 31, 15
+    obs = decode_reply(msgpack.packb(wire))
+    assert isinstance(obs, Observation)
+    assert type(obs.time) is float and type(obs.ego.speed) is float and obs.ego.speed == 15.0
+
+
+@pytest.mark.parametrize("cls", REQUEST_TYPES + REPLY_TYPES, ids=lambda c: c.__name__)
+def test_every_message_class_compiles(cls: type) -> None:
+    assert codec._converter(cls).__qualname__ == f"decode_{cls.__name__}"
+
+
+def leaf_paths(wire: dict[str, Any], prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    paths = []
+    for key, value in wire.items():
+        if isinstance(value, dict):
+            paths += leaf_paths(value, (*prefix, key))
+        paths.append((*prefix, key))
+    return paths
+
+
+FULL_OBSERVATION = codec._wire_map(REPLIES[1])  # every field present, a ceiling too
+
+
+@pytest.mark.parametrize("path", leaf_paths(FULL_OBSERVATION), ids=".".join)
+def test_every_field_of_an_observation_gets_the_reference_verdict(path: tuple[str, ...]) -> None:
+    for odd in [*ODD, "missing"]:
+        raw = msgpack.unpackb(msgpack.packb(FULL_OBSERVATION), raw=False)
+        parent = raw
+        for key in path[:-1]:
+            parent = parent[key]
+        if odd == "missing":
+            del parent[path[-1]]
+        else:
+            parent[path[-1]] = odd
+        expected = outcome(reference_dataclass(Observation), raw, "observation")
+        assert outcome(codec._converter(Observation), raw, "observation") == expected, odd
+
+
+@settings(max_examples=400, deadline=None)
+@given(data=st.data())
+def test_hostile_observations_get_the_reference_verdict(data: st.DataObject) -> None:
+    wire = codec._wire_map(data.draw(observations()))
+    raw = data.draw(mutated(wire))
+    got = outcome(codec._converter(Observation), raw, "observation")
+    assert got == outcome(reference_dataclass(Observation), raw, "observation")
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_hostile_requests_get_the_reference_verdict(data: st.DataObject) -> None:
+    message = data.draw(st.sampled_from(REQUESTS))
+    wire = codec._wire_map(message)
+    raw = data.draw(mutated(wire)) if len(wire) > 1 else wire
+    cls = type(message)
+    assert outcome(codec._converter(cls), raw, cls.TYPE) == outcome(
+        reference_dataclass(cls), raw, cls.TYPE
+    )
+
+
+def test_a_request_decodes_through_the_compiled_converter() -> None:
+    frame = msgpack.packb({"type": "step", "seq": 2, "acceleration": -1, "extra": [1]})
+    step = decode_request(frame)
+    assert step == Step(2, -1.0, 0) and type(step.acceleration) is float  # type: ignore[union-attr]
