@@ -24,7 +24,7 @@ from sim_server.server import DEFAULT_SESSION_TIMEOUT_S, Server, Session, format
 SECRET_KEY_ENV = "SIM_SERVER_SECRET_KEY"
 AUTHORIZED_KEYS_ENV = "SIM_SERVER_AUTHORIZED_KEYS"
 
-BACKENDS = ("sumo", "fake", "highway")
+BACKENDS = ("sumo", "sumo-traci", "fake", "highway")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,8 +42,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--backend",
         choices=BACKENDS,
         default="sumo",
-        help="simulator: sumo (libsumo, in-process), highway (highway-env) or fake (kinematic "
-        "toy for tests)",
+        help="simulator: sumo (libsumo, in-process), sumo-traci (SUMO over its TraCI socket), "
+        "highway (highway-env) or fake (kinematic toy for tests)",
+    )
+    parser.add_argument(
+        "--gui",
+        action="store_true",
+        help="with --backend sumo-traci: run sumo-gui instead of sumo, to watch the ego "
+        "(needs a display)",
+    )
+    parser.add_argument(
+        "--traci-port",
+        type=int,
+        help="with --backend sumo-traci: attach to a SUMO that another tool started with "
+        "--remote-port PORT on this machine, instead of starting one",
     )
     parser.add_argument(
         "--sumocfg",
@@ -109,6 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def make_backend(args: argparse.Namespace) -> Backend:
+    if args.backend != "sumo-traci" and (args.gui or args.traci_port is not None):
+        raise SystemExit("sim-server: --gui and --traci-port need --backend sumo-traci")
     if args.backend == "fake":
         from sim_server.fake_backend import FakeBackend
 
@@ -124,6 +138,17 @@ def make_backend(args: argparse.Namespace) -> Backend:
     if args.sumocfg is not None:
         name = args.scenario_name or args.sumocfg.stem
         custom = (CustomScenario(name, args.sumocfg.resolve(), args.ego_route),)
+    if args.backend == "sumo-traci":
+        try:
+            return SumoBackend(
+                cache_dir=args.cache_dir,
+                custom=custom,
+                traci=True,
+                gui=args.gui,
+                traci_port=args.traci_port,
+            )
+        except (ValueError, FileNotFoundError) as exc:
+            raise SystemExit(f"sim-server: {exc}") from exc
     return SumoBackend(cache_dir=args.cache_dir, custom=custom)
 
 

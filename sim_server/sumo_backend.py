@@ -1,4 +1,9 @@
-"""SUMO behind the bridge, in-process through libsumo (one simulation per process).
+"""SUMO behind the bridge: in-process through libsumo, or over TraCI to a sumo / sumo-gui process.
+
+libsumo and TraCI have the same API, so one `SumoBackend` drives either: ``libsumo`` (the
+default, one simulation per process, fastest) or a TraCI `Connection` to a ``sumo`` or
+``sumo-gui`` process it starts from the eclipse-sumo wheel (or attaches to, on a port), to watch
+the ego in the GUI or to share the simulation with another TraCI tool.
 
 The ego is driven entirely by the client: speed mode 32 switches SUMO's safety checks off (the
 agent can crash and must learn not to), lane-change mode 512 stops SUMO's own lane changes but
@@ -15,8 +20,6 @@ import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
-
-import libsumo
 
 from protocol.errors import ErrorCode
 from protocol.messages import (
@@ -44,13 +47,12 @@ from sim_server.scenarios import (
     check_options,
     default_cache_dir,
 )
+from sim_server.sumo_runtime import InProcess, OverTraci, check_display
 
 SPEED_MODE_NO_CHECKS = 32
 LANE_CHANGE_MODE_REQUESTS_ONLY = 512
 CEILING_HORIZON = 3600.0
 """Longest extra simulated time (s) spent waiting for the leader-at-entry to arrive."""
-
-_SUMO_ERRORS = (libsumo.TraCIException, libsumo.FatalTraCIError)
 
 # Command-line options forced on every scenario, also a user's own .sumocfg.
 _FORCED_ARGS = [
@@ -63,6 +65,8 @@ _FORCED_ARGS = [
 ]  # fmt: skip
 
 _ABSENT = Neighbour(present=False, gap=0.0, lateral=0.0, speed=0.0)
+_QUIET = Events()
+"""The events of most steps (nothing happened); immutable, so shared."""
 
 
 @dataclass
@@ -79,15 +83,26 @@ class _Episode:
     leader_depart: float
     leader_arrival: float | None = None
     sumo_drives: bool = False
+    one_way: bool = False
+    """A built-in road: no lane beyond its edge's outer lanes (no opposite-direction lanes)."""
     lane_change_target: int | None = None
     stopped_since: float | None = None
     done: bool = False
     last: Observation | None = None
-    lane_counts: dict[str, int] = field(default_factory=dict)
+    ego_min_gap: float = 0.0
+    lanes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    """Lane id -> (its index, the lane count of its edge): neither changes during a run."""
+    min_gaps: dict[str, float] = field(default_factory=dict)
+    """Vehicle id -> its minGap (fixed by its type)."""
 
 
 class SumoBackend(Backend):
-    """Runs SUMO scenarios through libsumo; reset reloads the running SUMO when it can."""
+    """Runs SUMO scenarios; reset reloads the running SUMO when it can.
+
+    By default SUMO runs in this process through libsumo. With ``traci=True`` it runs in a
+    ``sumo`` process (``sumo-gui`` with ``gui=True``) driven over TraCI, or, with `traci_port`,
+    in a SUMO another tool started with ``--remote-port``. Same scenarios, same observations.
+    """
 
     name = "sumo"
 
@@ -96,18 +111,42 @@ class SumoBackend(Backend):
         cache_dir: Path | None = None,
         custom: tuple[CustomScenario, ...] = (),
         restart_every: int = 50,
+        *,
+        traci: bool = False,
+        gui: bool = False,
+        traci_port: int | None = None,
+        traci_host: str = "localhost",
+        sumo_binary: str | None = None,
     ) -> None:
+        if not traci and (gui or traci_port is not None or sumo_binary is not None):
+            raise ValueError("gui, traci_port and sumo_binary need traci=True")
+        if gui and traci_port is not None:
+            raise ValueError("gui starts its own sumo-gui: it cannot attach to a port")
+        if gui:
+            check_display()
         self._cache_dir = cache_dir or default_cache_dir()
         self._scenarios: dict[str, Scenario] = {**BUILTIN_SCENARIOS}
         for scenario in custom:
             self._scenarios[scenario.name] = scenario
+        self._sumo: InProcess | OverTraci = (
+            OverTraci(gui, traci_port, traci_host, sumo_binary) if traci else InProcess()
+        )
+        self.name = self._sumo.name
+        self._errors = self._sumo.errors
+        self._api: Any = None
         self._restart_every = restart_every
         self._loads = 0
         self._running = False
         self._episode: _Episode | None = None
         self._absent = replace(_ABSENT, gap=self.sensor_range)
-        _, version = libsumo.simulation.getVersion()
-        self._version = version.removeprefix("SUMO ").strip()
+        if traci_port is not None:
+            try:
+                self._api = self._sumo.attach()  # type: ignore[union-attr]
+            except self._errors as exc:
+                where = f"{traci_host}:{traci_port}"
+                raise ValueError(f"cannot attach to SUMO at {where}: {exc}") from exc
+            self._running = True
+        self._version = self._sumo.version()
 
     @property
     def version(self) -> str:
@@ -125,9 +164,9 @@ class SumoBackend(Backend):
         try:
             config, route = self._files(chosen, options)
             self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS])
-            return self._insert_ego(route, options)
-        except _SUMO_ERRORS as exc:
-            self._broken()
+            return self._insert_ego(route, options, isinstance(chosen, RoadScenario))
+        except self._errors as exc:
+            self._broken(exc)
             raise BackendError(
                 ErrorCode.SIMULATOR_ERROR, f"SUMO failed during reset: {exc}"
             ) from exc
@@ -143,18 +182,22 @@ class SumoBackend(Backend):
         return scenario.sumocfg, scenario.ego_route
 
     def _load(self, args: list[str]) -> None:
-        if self._running and self._loads < self._restart_every:
-            libsumo.simulation.load(args)
+        if self._running and (self._loads < self._restart_every or not self._sumo.restarts):
+            self._sumo.load(self._api, args)
             self._loads += 1
             return
         if self._running:
-            libsumo.close()
-        libsumo.start(["sumo", *args])
+            self._sumo.close(self._api)
+            self._running = False
+        self._api = self._sumo.start(args)
         self._running = True
         self._loads = 0
 
-    def _insert_ego(self, route: str, options: dict[str, OptionValue]) -> Observation:
-        dt = libsumo.simulation.getDeltaT()
+    def _insert_ego(
+        self, route: str, options: dict[str, OptionValue], one_way: bool
+    ) -> Observation:
+        api = self._api
+        dt = api.simulation.getDeltaT()
         interval = float(options["decision_interval"])  # type: ignore[arg-type]
         substeps = round(interval / dt)
         if substeps < 1 or abs(substeps * dt - interval) > 1e-6:
@@ -162,59 +205,61 @@ class SumoBackend(Backend):
                 ErrorCode.INVALID_OPTION,
                 f"decision_interval {interval} s is not a multiple of the step length {dt} s",
             )
-        libsumo.simulationStep(libsumo.simulation.getTime() + float(options["warmup"]))  # type: ignore[arg-type]
+        api.simulationStep(api.simulation.getTime() + float(options["warmup"]))  # type: ignore[arg-type]
         sumo_drives = options["ego_driver"] == "sumo"
-        types = libsumo.vehicletype.getIDList()
+        types = api.vehicletype.getIDList()
         if sumo_drives:  # a human driver of the scenario, driven by SUMO, observed by the client
             type_id = HUMAN_TYPE if HUMAN_TYPE in types else "DEFAULT_VEHTYPE"
         else:
             type_id = EGO_TYPE
             if EGO_TYPE not in types:
                 self._define_ego_type()
-        libsumo.vehicle.add(
+        api.vehicle.add(
             EGO_ID, route, typeID=type_id, depart="now",
             departLane="random", departPos="base", departSpeed="max",
         )  # fmt: skip
         if not sumo_drives:
-            libsumo.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
-            libsumo.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
-        deadline = libsumo.simulation.getTime() + float(options["insertion_timeout"])  # type: ignore[arg-type]
-        while EGO_ID not in libsumo.simulation.getDepartedIDList():
-            if libsumo.simulation.getTime() >= deadline:
-                libsumo.vehicle.remove(EGO_ID)
+            api.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
+            api.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
+        deadline = api.simulation.getTime() + float(options["insertion_timeout"])  # type: ignore[arg-type]
+        while EGO_ID not in api.simulation.getDepartedIDList():
+            if api.simulation.getTime() >= deadline:
+                api.vehicle.remove(EGO_ID)
                 raise BackendError(
                     ErrorCode.INSERTION_FAILED,
                     f"the ego could not enter within {options['insertion_timeout']} s "
                     "(road too full at the entry); try a lower flow or another seed",
                 )
-            libsumo.simulationStep()
-        edges = libsumo.vehicle.getRoute(EGO_ID)
-        route_length = sum(libsumo.lane.getLength(f"{edge}_0") for edge in edges)
-        leader_id, _ = libsumo.vehicle.getLeader(EGO_ID, route_length) or ("", 0.0)
+            api.simulationStep()
+        edges = api.vehicle.getRoute(EGO_ID)
+        route_length = sum(api.lane.getLength(f"{edge}_0") for edge in edges)
+        leader_id, _ = api.vehicle.getLeader(EGO_ID, route_length) or ("", 0.0)
         self._episode = _Episode(
             dt=dt,
             substeps=substeps,
             options=options,
-            entry_time=libsumo.simulation.getTime(),
-            entry_offset=libsumo.vehicle.getLanePosition(EGO_ID),
+            entry_time=api.simulation.getTime(),
+            entry_offset=api.vehicle.getLanePosition(EGO_ID),
             route_length=route_length,
             leader_id=leader_id,
-            leader_depart=libsumo.vehicle.getDeparture(leader_id) if leader_id else math.nan,
+            leader_depart=api.vehicle.getDeparture(leader_id) if leader_id else math.nan,
             sumo_drives=sumo_drives,
+            one_way=one_way,
+            ego_min_gap=api.vehicle.getMinGap(EGO_ID),
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
         return self._observe(self._episode, 0, Events(), action)
 
-    @staticmethod
-    def _define_ego_type() -> None:
+    def _define_ego_type(self) -> None:
         """A user's .sumocfg has no ego type: derive one like the built-in scenarios'."""
-        libsumo.vehicletype.copy("DEFAULT_VEHTYPE", EGO_TYPE)
-        libsumo.vehicletype.setImperfection(EGO_TYPE, 0.0)
-        libsumo.vehicletype.setSpeedFactor(EGO_TYPE, 1.0)
-        libsumo.vehicletype.setSpeedDeviation(EGO_TYPE, 0.0)
-        libsumo.vehicletype.setAccel(EGO_TYPE, 3.0)
-        libsumo.vehicletype.setDecel(EGO_TYPE, 6.0)
-        libsumo.vehicletype.setEmergencyDecel(EGO_TYPE, 9.0)
+        api = self._api
+        api.vehicletype.copy("DEFAULT_VEHTYPE", EGO_TYPE)
+        api.vehicletype.setImperfection(EGO_TYPE, 0.0)
+        api.vehicletype.setSpeedFactor(EGO_TYPE, 1.0)
+        api.vehicletype.setSpeedDeviation(EGO_TYPE, 0.0)
+        api.vehicletype.setAccel(EGO_TYPE, 3.0)
+        api.vehicletype.setDecel(EGO_TYPE, 6.0)
+        api.vehicletype.setEmergencyDecel(EGO_TYPE, 9.0)
 
     # ----------------------------------------------------------------------- step
 
@@ -224,21 +269,22 @@ class SumoBackend(Backend):
             raise BackendError(ErrorCode.OUT_OF_ORDER, "no running episode: send reset first")
         try:
             return self._step(episode, seq, acceleration, lane_change)
-        except _SUMO_ERRORS as exc:
-            self._broken()
+        except self._errors as exc:
+            self._broken(exc)
             raise BackendError(
                 ErrorCode.SIMULATOR_ERROR, f"SUMO failed during step: {exc}"
             ) from exc
 
     def _step(self, episode: _Episode, seq: int, request: float, lane_change: int) -> Observation:
+        api = self._api
         started = False
         if episode.sumo_drives:
             refused = "simulator_drives" if lane_change else ""
         else:
             refused = self._lane_change_refusal(episode, lane_change) if lane_change else ""
         if lane_change and not refused:
-            target = libsumo.vehicle.getLaneIndex(EGO_ID) + lane_change
-            libsumo.vehicle.changeLane(EGO_ID, target, 2.0)
+            target = self._lane(episode)[0] + lane_change
+            api.vehicle.changeLane(EGO_ID, target, 2.0)
             episode.lane_change_target = target
             started = True
         low = self.action_schema.acceleration_min
@@ -248,34 +294,34 @@ class SumoBackend(Backend):
         substeps_done = 0
         for _ in range(episode.substeps):
             if episode.sumo_drives:
-                libsumo.simulationStep()
-                gone = EGO_ID in libsumo.simulation.getArrivedIDList()
-                applied = 0.0 if gone else libsumo.vehicle.getAcceleration(EGO_ID)
+                api.simulationStep()
+                gone = EGO_ID in api.simulation.getArrivedIDList()
+                applied = 0.0 if gone else api.vehicle.getAcceleration(EGO_ID)
                 why = "simulator"
             else:
-                speed = libsumo.vehicle.getSpeed(EGO_ID)
-                limit = libsumo.vehicle.getAllowedSpeed(EGO_ID)
+                speed = api.vehicle.getSpeed(EGO_ID)
+                limit = api.vehicle.getAllowedSpeed(EGO_ID)
                 applied, why = _limit_acceleration(request, speed, limit, low, high, episode.dt)
-                libsumo.vehicle.setAcceleration(EGO_ID, applied, episode.dt)
-                libsumo.simulationStep()
+                api.vehicle.setAcceleration(EGO_ID, applied, episode.dt)
+                api.simulationStep()
             applied_total += applied
             limited_by = limited_by or why
             substeps_done += 1
-            for collision in libsumo.simulation.getCollisions():
+            for collision in api.simulation.getCollisions():
                 if collision.collider == EGO_ID:
                     collision_with = collision.victim
                 elif collision.victim == EGO_ID:
                     collision_with = collision.collider
-            arrived = libsumo.simulation.getArrivedIDList()
+            arrived = api.simulation.getArrivedIDList()
             if episode.leader_arrival is None and episode.leader_id in arrived:
-                episode.leader_arrival = libsumo.simulation.getTime()
-            teleported = teleported or EGO_ID in libsumo.simulation.getStartingTeleportIDList()
+                episode.leader_arrival = api.simulation.getTime()
+            teleported = teleported or EGO_ID in api.simulation.getStartingTeleportIDList()
             if collision_with:
                 break
             if EGO_ID in arrived:
                 end_of_road = True
                 break
-            if episode.lane_change_target is not None and _lane_change_done(episode):
+            if episode.lane_change_target is not None and _lane_change_done(api, episode):
                 episode.lane_change_target = None
                 completed = True
         action = AppliedAction(
@@ -286,25 +332,36 @@ class SumoBackend(Backend):
             acceleration_limited_by=limited_by,
             lane_change_refused=refused,
         )
-        events = Events(
-            collision=bool(collision_with),
-            collision_with=collision_with,
-            end_of_road=end_of_road,
-            lane_change_started=started,
-            lane_change_completed=completed,
-            lane_change_refused=bool(refused),
-            teleported=teleported,
+        events = (
+            Events(
+                collision=bool(collision_with),
+                collision_with=collision_with,
+                end_of_road=end_of_road,
+                lane_change_started=started,
+                lane_change_completed=completed,
+                lane_change_refused=bool(refused),
+                teleported=teleported,
+            )
+            if collision_with or end_of_road or started or completed or refused or teleported
+            else _QUIET
         )
         if end_of_road:
             return self._finish(episode, self._arrival_observation(episode, seq, events, action))
-        if teleported or EGO_ID not in libsumo.vehicle.getIDList():
+        lost = teleported
+        if not lost:
+            try:
+                obs = self._observe(episode, seq, events, action)
+            except self._errors:
+                if EGO_ID in api.vehicle.getIDList():
+                    raise
+                lost = True  # gone without arriving: seen when its state cannot be read
+        if lost:
             obs = replace(
                 self._arrival_observation(episode, seq, events, action),
                 terminated=True,
                 reason="ego_lost",
             )
             return self._finish(episode, obs)
-        obs = self._observe(episode, seq, events, action)
         reason = self._termination(episode, obs)
         if reason:
             truncated = reason == "time_limit"
@@ -315,10 +372,10 @@ class SumoBackend(Backend):
     def _lane_change_refusal(self, episode: _Episode, direction: int) -> str:
         if episode.lane_change_target is not None:
             return "in_progress"
-        lane = libsumo.vehicle.getLaneIndex(EGO_ID)
-        if not 0 <= lane + direction < self._lane_count(episode):
+        lane, lane_count = self._lane(episode)
+        if not 0 <= lane + direction < lane_count:
             return "no_lane"
-        if not libsumo.vehicle.couldChangeLane(EGO_ID, direction):
+        if not self._api.vehicle.couldChangeLane(EGO_ID, direction):
             return "gap_too_small"
         return ""
 
@@ -342,21 +399,23 @@ class SumoBackend(Backend):
 
     def _finish(self, episode: _Episode, obs: Observation) -> Observation:
         """End the episode: take the ego out and report the leader-at-entry's trip."""
+        api = self._api
         episode.done = True
-        if EGO_ID in libsumo.vehicle.getIDList():
-            libsumo.vehicle.remove(EGO_ID)
+        if EGO_ID in api.vehicle.getIDList():
+            api.vehicle.remove(EGO_ID)
         if episode.options["report_ceiling"]:
             obs = replace(obs, ceiling=self._leader_trip(episode))
         return obs
 
     def _leader_trip(self, episode: _Episode) -> LeaderTrip | None:
+        api = self._api
         if not episode.leader_id:
             return None
-        end = libsumo.simulation.getTime() + CEILING_HORIZON
-        while episode.leader_arrival is None and libsumo.simulation.getTime() < end:
-            libsumo.simulationStep()
-            if episode.leader_id in libsumo.simulation.getArrivedIDList():
-                episode.leader_arrival = libsumo.simulation.getTime()
+        end = api.simulation.getTime() + CEILING_HORIZON
+        while episode.leader_arrival is None and api.simulation.getTime() < end:
+            api.simulationStep()
+            if episode.leader_id in api.simulation.getArrivedIDList():
+                episode.leader_arrival = api.simulation.getTime()
         arrival = episode.leader_arrival
         average = (
             None if arrival is None else episode.route_length / (arrival - episode.leader_depart)
@@ -365,43 +424,70 @@ class SumoBackend(Backend):
 
     # ----------------------------------------------------------------------- observation
 
-    def _lane_count(self, episode: _Episode) -> int:
-        road = libsumo.vehicle.getRoadID(EGO_ID)
-        count = episode.lane_counts.get(road)
-        if count is None:
-            count = episode.lane_counts[road] = libsumo.edge.getLaneNumber(road)
-        return count
+    def _lane(self, episode: _Episode, lane_id: str | None = None) -> tuple[int, int]:
+        """The ego's lane index and the number of lanes of its edge (one query when cached)."""
+        api = self._api
+        if lane_id is None:
+            lane_id = api.vehicle.getLaneID(EGO_ID)
+        known = episode.lanes.get(lane_id)
+        if known is None:
+            road = api.lane.getEdgeID(lane_id)
+            known = episode.lanes[lane_id] = (
+                api.vehicle.getLaneIndex(EGO_ID),
+                api.edge.getLaneNumber(road),
+            )
+        return known
 
     def _observe(
         self, episode: _Episode, seq: int, events: Events, action: AppliedAction
     ) -> Observation:
-        vehicle = libsumo.vehicle
+        vehicle = self._api.vehicle
+        speed = vehicle.getSpeed(EGO_ID)  # first: raises if the ego has gone
+        acceleration = vehicle.getAcceleration(EGO_ID)
+        lane_id = vehicle.getLaneID(EGO_ID)
+        lane, lane_count = self._lane(episode, lane_id)
         ego = Ego(
-            speed=vehicle.getSpeed(EGO_ID),
-            acceleration=vehicle.getAcceleration(EGO_ID),
-            lane=vehicle.getLaneIndex(EGO_ID),
-            lane_count=self._lane_count(episode),
+            speed=speed,
+            acceleration=acceleration,
+            lane=lane,
+            lane_count=lane_count,
             position=episode.entry_offset + vehicle.getDistance(EGO_ID),
-            speed_limit=libsumo.lane.getMaxSpeed(vehicle.getLaneID(EGO_ID)),
+            speed_limit=self._api.lane.getMaxSpeed(lane_id),
         )
         x, y = vehicle.getPosition(EGO_ID)
         heading = math.radians(vehicle.getAngle(EGO_ID))
         frame = (x, y, -math.cos(heading), math.sin(heading))
-        ego_min_gap = vehicle.getMinGap(EGO_ID)
+        ego_min_gap = episode.ego_min_gap
         sensed = self.sensor_range
         leader = vehicle.getLeader(EGO_ID, sensed)
         follower = vehicle.getFollower(EGO_ID, sensed)
+        # SUMO finds no neighbour where there is no lane: on a built-in road, skip those queries.
+        left = not episode.one_way or lane + 1 < lane_count
+        right = not episode.one_way or lane > 0
+        nearest, none = self._nearest, ()
         neighbours = Neighbours(
-            left_leader=self._nearest(vehicle.getNeighbors(EGO_ID, 0b010), ego_min_gap, frame),
-            left_follower=self._nearest(vehicle.getNeighbors(EGO_ID, 0b000), None, frame),
-            leader=self._nearest((leader,) if leader and leader[0] else (), ego_min_gap, frame),
-            follower=self._nearest((follower,) if follower and follower[0] else (), None, frame),
-            right_leader=self._nearest(vehicle.getNeighbors(EGO_ID, 0b011), ego_min_gap, frame),
-            right_follower=self._nearest(vehicle.getNeighbors(EGO_ID, 0b001), None, frame),
+            left_leader=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b010) if left else none, ego_min_gap, frame
+            ),
+            left_follower=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b000) if left else none, None, frame
+            ),
+            leader=nearest(
+                episode, (leader,) if leader and leader[0] else none, ego_min_gap, frame
+            ),
+            follower=nearest(
+                episode, (follower,) if follower and follower[0] else none, None, frame
+            ),
+            right_leader=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b011) if right else none, ego_min_gap, frame
+            ),
+            right_follower=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b001) if right else none, None, frame
+            ),
         )
         obs = Observation(
             seq=seq,
-            time=libsumo.simulation.getTime(),
+            time=self._api.simulation.getTime(),
             ego=ego,
             neighbours=neighbours,
             events=events,
@@ -412,6 +498,7 @@ class SumoBackend(Backend):
 
     def _nearest(
         self,
+        episode: _Episode,
         found: Any,
         ego_min_gap: float | None,
         frame: tuple[float, float, float, float],
@@ -421,18 +508,23 @@ class SumoBackend(Backend):
         SUMO's leader distance excludes the ego's minGap, its follower distance the follower's:
         `ego_min_gap` is given for leaders, None for followers.
         """
+        api = self._api
         if not found:
             return self._absent
-        other, distance = min(found, key=lambda pair: pair[1])
-        gap = distance + (
-            ego_min_gap if ego_min_gap is not None else libsumo.vehicle.getMinGap(other)
-        )
+        other, distance = found[0] if len(found) == 1 else min(found, key=_second)
+        if ego_min_gap is None:
+            min_gap = episode.min_gaps.get(other)
+            if min_gap is None:
+                min_gap = episode.min_gaps[other] = api.vehicle.getMinGap(other)
+            gap = distance + min_gap
+        else:
+            gap = distance + ego_min_gap
         if gap > self.sensor_range:
             return self._absent
         x, y, normal_x, normal_y = frame
-        other_x, other_y = libsumo.vehicle.getPosition(other)
+        other_x, other_y = api.vehicle.getPosition(other)
         lateral = (other_x - x) * normal_x + (other_y - y) * normal_y
-        return Neighbour(True, gap, lateral, libsumo.vehicle.getSpeed(other), other)
+        return Neighbour(True, gap, lateral, api.vehicle.getSpeed(other), other)
 
     def _arrival_observation(
         self, episode: _Episode, seq: int, events: Events, action: AppliedAction
@@ -450,7 +542,7 @@ class SumoBackend(Backend):
         return replace(
             last,
             seq=seq,
-            time=libsumo.simulation.getTime(),
+            time=self._api.simulation.getTime(),
             ego=ego,
             events=events,
             action=action,
@@ -460,12 +552,14 @@ class SumoBackend(Backend):
 
     # ----------------------------------------------------------------------- lifecycle
 
-    def _broken(self) -> None:
+    def _broken(self, error: BaseException | None = None) -> None:
         """After a SUMO failure, start afresh on the next reset."""
         self._episode = None
+        if error is not None and self._sumo.survives(error):
+            return  # the next reset reloads the same SUMO
         if self._running:
-            with contextlib.suppress(*_SUMO_ERRORS):  # already gone: start() will follow
-                libsumo.close()
+            with contextlib.suppress(*self._errors):  # already gone: start() will follow
+                self._sumo.close(self._api)
         self._running = False
 
     def close(self) -> None:
@@ -485,8 +579,12 @@ def _limit_acceleration(
     return applied, why
 
 
-def _lane_change_done(episode: _Episode) -> bool:
+def _second(pair: tuple[str, float]) -> float:
+    return pair[1]
+
+
+def _lane_change_done(api: Any, episode: _Episode) -> bool:
     return (
-        libsumo.vehicle.getLaneIndex(EGO_ID) == episode.lane_change_target
-        and abs(libsumo.vehicle.getLateralLanePosition(EGO_ID)) < 1e-6
+        api.vehicle.getLaneIndex(EGO_ID) == episode.lane_change_target
+        and abs(api.vehicle.getLateralLanePosition(EGO_ID)) < 1e-6
     )

@@ -1,28 +1,54 @@
-"""The SUMO backend in-process through libsumo (real SUMO, one simulation per process)."""
+"""The SUMO backend (real SUMO): in-process through libsumo, and over TraCI to a sumo process.
+
+Every behaviour test runs on both; libsumo is one simulation per process, so this module holds
+one libsumo backend and one TraCI backend (its own ``sumo`` process).
+"""
 
 from __future__ import annotations
 
+import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from agent_client.idm import IDMDriver
+from protocol.codec import encode
 from protocol.errors import ErrorCode
 from protocol.messages import Observation, OptionValue
+from sim_server import cli
 from sim_server.backend import BackendError
-from sim_server.scenarios import EGO_ROUTE, CustomScenario
+from sim_server.scenarios import EGO_ID, EGO_ROUTE, CustomScenario
 from sim_server.sumo_backend import SumoBackend
+from sim_server.sumo_runtime import find_sumo_binary, free_port
 
 pytestmark = pytest.mark.sumo
 
 
 @pytest.fixture(scope="module")
-def backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
-    cache = tmp_path_factory.mktemp("scenarios")
-    sumo = SumoBackend(cache_dir=cache)
+def scenario_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("scenarios")
+
+
+@pytest.fixture(scope="module")
+def libsumo_backend(scenario_dir: Path) -> Iterator[SumoBackend]:
+    sumo = SumoBackend(cache_dir=scenario_dir)
     yield sumo
     sumo.close()
+
+
+@pytest.fixture(scope="module")
+def traci_backend(scenario_dir: Path) -> Iterator[SumoBackend]:
+    sumo = SumoBackend(cache_dir=scenario_dir, traci=True)
+    yield sumo
+    sumo.close()
+
+
+@pytest.fixture(scope="module", params=["libsumo", "traci"])
+def backend(request: pytest.FixtureRequest) -> SumoBackend:
+    """Each behaviour test runs on both ways to drive SUMO."""
+    return request.getfixturevalue(f"{request.param}_backend")  # type: ignore[no-any-return]
 
 
 def options(backend: SumoBackend, scenario: str, **changes: OptionValue) -> dict[str, OptionValue]:
@@ -217,8 +243,144 @@ def test_sumo_can_drive_the_ego_for_recording_human_trajectories(backend: SumoBa
 def test_a_users_own_sumocfg_is_a_scenario(backend: SumoBackend, tmp_path: Path) -> None:
     backend.reset("cf", 1, options(backend, "cf"))  # builds the cf files
     built = next(Path(backend._cache_dir).glob("cf-*/cf.sumocfg"))
-    user = SumoBackend(cache_dir=tmp_path, custom=(CustomScenario("mine", built, EGO_ROUTE),))
-    assert "mine" in [s.name for s in user.scenarios()]
-    obs = user.reset("mine", 3, options(user, "mine"))
-    assert obs.ego.lane_count == 1
-    assert user.step(1, 0.0, 0).seq == 1
+    traci = backend.name == "sumo-traci"
+    custom = (CustomScenario("mine", built, EGO_ROUTE),)
+    user = SumoBackend(cache_dir=tmp_path, custom=custom, traci=traci)
+    try:
+        assert "mine" in [s.name for s in user.scenarios()]
+        obs = user.reset("mine", 3, options(user, "mine"))
+        assert obs.ego.lane_count == 1
+        assert user.step(1, 0.0, 0).seq == 1
+    finally:
+        if traci:  # (closing a libsumo backend would close the module's shared simulation)
+            user.close()
+
+
+def test_an_ego_that_vanishes_without_arriving_ends_the_episode_as_lost(
+    backend: SumoBackend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first = backend.reset("cflc", 17, options(backend, "cflc"))
+    api = backend._api
+    real_step = api.simulationStep
+
+    def vaporise_and_step(time: float = 0.0) -> None:
+        if EGO_ID in api.vehicle.getIDList():
+            api.vehicle.remove(EGO_ID)  # gone without being reported as arrived in this step
+        real_step(time)
+
+    backend.step(1, 0.0, 0)
+    monkeypatch.setattr(api, "simulationStep", vaporise_and_step)
+    obs = backend.step(2, 0.0, 0)
+    monkeypatch.undo()
+    assert obs.terminated and obs.reason == "ego_lost"
+    assert obs.time > first.time
+    with pytest.raises(BackendError) as caught:
+        backend.step(3, 0.0, 0)
+    assert caught.value.code is ErrorCode.OUT_OF_ORDER
+    assert backend.reset("cf", 1, options(backend, "cf")).seq == 0
+
+
+# --------------------------------------------------------------------------- TraCI only
+
+
+def test_traci_gives_the_libsumo_stream_bit_for_bit(
+    libsumo_backend: SumoBackend, traci_backend: SumoBackend
+) -> None:
+    """Same SUMO release, same seed and actions: the two ways to drive it agree exactly."""
+    assert traci_backend.name == "sumo-traci" and libsumo_backend.name == "sumo"
+    assert traci_backend.version == libsumo_backend.version
+
+    def lane_changing_idm(backend: SumoBackend, scenario: str, seed: int) -> list[Observation]:
+        driver = IDMDriver()
+        obs = backend.reset(scenario, seed, options(backend, scenario))
+        stream = [obs]
+        for seq in range(1, 400):
+            change = (1 if obs.ego.lane == 0 else -1) if seq % 37 == 5 else 0
+            obs = backend.step(seq, driver.act(obs)[0], change)
+            stream.append(obs)
+            if obs.terminated or obs.truncated:
+                break
+        return stream
+
+    for scenario, seed in (("cf", 21), ("cflc", 4)):
+        expected = lane_changing_idm(libsumo_backend, scenario, seed)
+        got = lane_changing_idm(traci_backend, scenario, seed)
+        assert [encode(o) for o in got] == [encode(o) for o in expected]  # the wire bytes
+        if scenario == "cflc":
+            assert any(o.events.lane_change_completed for o in expected)
+
+
+def test_traci_attaches_to_a_sumo_another_tool_started(scenario_dir: Path) -> None:
+    probe = SumoBackend(cache_dir=scenario_dir, traci=True)
+    config = next(scenario_dir.glob("cf-*/cf.sumocfg"), None)
+    if config is None:  # build the cf files
+        probe.reset("cf", 1, options(probe, "cf"))
+        config = next(scenario_dir.glob("cf-*/cf.sumocfg"))
+    probe.close()
+    port = free_port()
+    other = subprocess.Popen(
+        [find_sumo_binary(), "-c", str(config), "--remote-port", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        attached = SumoBackend(cache_dir=scenario_dir, traci=True, traci_port=port)
+        assert attached.version == probe.version
+        first = attached.reset("cflc", 2, options(attached, "cflc"))
+        assert first.ego.lane_count == 3
+        assert attached.step(1, 0.5, 0).seq == 1
+        with pytest.raises(BackendError):  # a refused command keeps the attached SUMO...
+            attached.reset("cf", 1, options(attached, "cf", decision_interval=0.15))
+        assert attached.reset("cf", 1, options(attached, "cf")).ego.lane_count == 1  # ...usable
+        attached.close()
+        assert other.wait(timeout=30) == 0  # closing the TraCI connection ends that SUMO
+    finally:
+        if other.poll() is None:
+            other.kill()
+            other.wait()
+
+
+def test_traci_attach_to_nothing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    from sim_server import sumo_runtime
+
+    monkeypatch.setattr(sumo_runtime, "TRACI_START_TIMEOUT_S", 0.5)
+    port = free_port()
+    with pytest.raises(ValueError, match=f"cannot attach to SUMO at localhost:{port}"):
+        SumoBackend(traci=True, traci_port=port)
+
+
+def test_gui_without_a_display_is_refused_at_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(ValueError, match="DISPLAY is not set"):
+        SumoBackend(traci=True, gui=True)
+    with pytest.raises(SystemExit, match="sumo-gui needs a display"):
+        cli.main(["--bind", "tcp://127.0.0.1:0", "--backend", "sumo-traci", "--gui"])
+    with pytest.raises(SystemExit, match="need --backend sumo-traci"):
+        cli.main(["--bind", "tcp://127.0.0.1:0", "--backend", "sumo", "--gui"])
+
+
+def test_gui_on_an_unreachable_display_fails_promptly_with_its_reason(
+    monkeypatch: pytest.MonkeyPatch, scenario_dir: Path
+) -> None:
+    try:
+        find_sumo_binary(gui=True)
+    except FileNotFoundError:
+        pytest.skip("no sumo-gui binary")
+    monkeypatch.setenv("DISPLAY", ":977")  # no X server there
+    gui = SumoBackend(cache_dir=scenario_dir, traci=True, gui=True)
+    started = time.monotonic()
+    with pytest.raises(BackendError) as caught:
+        gui.reset("cf", 1, options(gui, "cf"))
+    assert time.monotonic() - started < 30
+    assert caught.value.code is ErrorCode.SIMULATOR_ERROR
+    assert "sumo-gui exited" in caught.value.message
+    assert "display" in caught.value.message.lower()
+    gui.close()
+
+
+def test_traci_options_need_traci() -> None:
+    with pytest.raises(ValueError, match="need traci=True"):
+        SumoBackend(gui=True)
+    with pytest.raises(ValueError, match="cannot attach"):
+        SumoBackend(traci=True, gui=True, traci_port=8813)
