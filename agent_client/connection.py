@@ -31,13 +31,15 @@ from protocol.version import PROTOCOL_VERSION
 
 CLIENT_NAME = "agent_client"
 
-_UP = zmq.EVENT_CONNECTED
+_UP = zmq.EVENT_HANDSHAKE_SUCCEEDED
 _LOST = zmq.EVENT_DISCONNECTED
-_REFUSED = (
-    zmq.EVENT_HANDSHAKE_FAILED_AUTH
-    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
-    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
-)
+_REFUSED = zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+"""A refused handshake: wrong keys, or CURVE on one side only."""
+_FAILED = zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+"""A handshake that broke off: a CURVE server meeting a plain client, but also a connection cut
+mid-handshake (a server being restarted): refused after `FAILED_HANDSHAKES_REFUSED` in a row."""
+FAILED_HANDSHAKES_REFUSED = 3
+"""ZeroMQ retries every 100 ms, so a refusal is reported within about half a second."""
 
 
 class BridgeError(Exception):
@@ -94,7 +96,9 @@ class Connection:
         self._context = zmq.Context()
         self._socket: zmq.Socket[bytes] | None = None
         self._monitor: zmq.Socket[bytes] | None = None
-        self._poller = zmq.Poller()
+        self._session_up = False
+        """A handshake succeeded on the current connection (requests reach the server)."""
+        self._failed_handshakes = 0
 
     def request(self, message: Request, timeout_s: float | None = None) -> Reply:
         """Send one request and return the reply; an `Error` reply raises `ServerError`."""
@@ -126,12 +130,15 @@ class Connection:
             raise RuntimeError("receive() without a request in flight")
         wait_s = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + wait_s
+        monitor = self._monitor
+        assert monitor is not None
+        watched: list[tuple[zmq.Socket[bytes], int]] = [(socket, zmq.POLLIN), (monitor, zmq.POLLIN)]
         while True:
             remaining_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
-            ready = dict(self._poller.poll(remaining_ms))
+            ready = {s for s, _ in zmq.zmq_poll(watched, remaining_ms)}
             if socket in ready:
                 break
-            if self._monitor in ready:
+            if monitor in ready:
                 self._check_events(waiting=True)
                 continue
             raise ServerTimeout(
@@ -173,10 +180,18 @@ class Connection:
         while self._monitor.poll(0):
             event = parse_monitor_message(self._monitor.recv_multipart())["event"]
             if event & _UP:
+                self._session_up, self._failed_handshakes = True, 0
                 lost = waiting and lost
-            if event & _LOST:
+            if event & _LOST and self._session_up:  # before a handshake no request was sent
+                self._session_up = False
                 lost = True
-            refused = refused or bool(event & _REFUSED)
+            if event & _FAILED:
+                self._failed_handshakes += 1
+            refused = (
+                refused
+                or bool(event & _REFUSED)
+                or self._failed_handshakes >= FAILED_HANDSHAKES_REFUSED
+            )
         if refused:
             self._drop_socket()
             raise AuthenticationFailed(
@@ -200,19 +215,16 @@ class Connection:
                 self.credentials,
                 self.heartbeat_timeout_ms,
             )
-            self._monitor = self._socket.get_monitor_socket(_UP | _LOST | _REFUSED)
-            self._poller.register(self._socket, zmq.POLLIN)
-            self._poller.register(self._monitor, zmq.POLLIN)
+            self._monitor = self._socket.get_monitor_socket(_UP | _LOST | _REFUSED | _FAILED)
+            self._session_up, self._failed_handshakes = False, 0
         return self._socket
 
     def _drop_socket(self) -> None:
         if self._socket is not None:
-            self._poller.unregister(self._socket)
             self._socket.disable_monitor()
             self._socket.close(linger=0)
             self._socket = None
         if self._monitor is not None:
-            self._poller.unregister(self._monitor)
             self._monitor.close(linger=0)
             self._monitor = None
 

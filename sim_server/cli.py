@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 from pathlib import Path
 from types import FrameType
 
@@ -114,6 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         help="run N servers (one simulation each) on consecutive ports from --bind (port 0: free "
         "ports), print one readiness line per worker, restart any that dies (default 1)",
+    )
+    parser.add_argument(
+        "--exit-with-parent",
+        action="store_true",
+        help="stop when the process that started this server exits, even by SIGKILL (the "
+        "--workers supervisor starts its workers so: none outlives it)",
     )
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
     parser.add_argument("--version", action="version", version=f"sim-server {__version__}")
@@ -242,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    if args.exit_with_parent:
+        stop_with_parent(server)
     print(format_listening(server.endpoint), flush=True)
     logging.getLogger("sim_server").info(
         "backend %s %s, scenarios: %s; %s",
@@ -255,6 +264,20 @@ def main(argv: list[str] | None = None) -> int:
     server.serve()
     logging.getLogger("sim_server").info("stopped")
     return 0
+
+
+def stop_with_parent(server: Server, check_interval_s: float = 0.5) -> None:
+    """Stop `server` once this process's parent is gone (the process is re-parented)."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while not server.stopping.wait(check_interval_s):
+            if os.getppid() != parent:
+                logging.getLogger("sim_server").warning("parent %d is gone; stopping", parent)
+                server.stop()
+                return
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 if __name__ == "__main__":

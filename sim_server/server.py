@@ -278,18 +278,22 @@ class Server:
         """Ask the loop to return (safe from signal handlers and other threads)."""
         self._stop.set()
 
+    @property
+    def stopping(self) -> threading.Event:
+        """Set once `stop` was called."""
+        return self._stop
+
     def serve(self) -> None:
         """Serve requests until `stop`; always releases the socket and the backend."""
-        poller = zmq.Poller()
-        poller.register(self._socket, zmq.POLLIN)
-        poller.register(self._monitor, zmq.POLLIN)
+        socket, monitor = self._socket, self._monitor
+        watched = [(socket, zmq.POLLIN), (monitor, zmq.POLLIN)]
         try:
             while not self._stop.is_set():
-                ready = dict(poller.poll(POLL_INTERVAL_MS))
-                if self._monitor in ready:  # disconnections first: they came before the data
+                ready = {s for s, _ in zmq.zmq_poll(watched, POLL_INTERVAL_MS)}
+                if monitor in ready:  # disconnections first: they came before the data
                     self._read_events()
-                if self._socket in ready:
-                    self._answer(self._socket.recv_multipart(copy=False))
+                if socket in ready:
+                    self._answer()
         finally:
             self.close()
 
@@ -300,9 +304,14 @@ class Server:
                 self._owner_fd = None
                 self.session.owner_disconnected()
 
-    def _answer(self, frames: list[zmq.Frame]) -> None:
-        # A REQ peer sends [identity, b"", payload]; keep the envelope, answer the payload.
-        parts = [frame.bytes for frame in frames]
+    def _answer(self) -> None:
+        # A REQ peer sends [routing id, request id, b"", payload]; keep the envelope, answer the
+        # payload. Only the first frame is received as a zmq.Frame, for the connection's fd.
+        socket = self._socket
+        head = socket.recv(copy=False)
+        parts = [head.bytes]
+        while socket.rcvmore:
+            parts.append(socket.recv())
         try:
             split = parts.index(b"", 1) + 1
         except ValueError:
@@ -315,8 +324,8 @@ class Server:
         else:
             reply = self.session.handle(parts[0], body[0])
             if self.session.owner == parts[0]:
-                self._owner_fd = _source_fd(frames[-1])
-        self._socket.send_multipart([*envelope, reply])
+                self._owner_fd = _source_fd(head)
+        socket.send_multipart([*envelope, reply])
 
     def close(self) -> None:
         if self._socket.closed:

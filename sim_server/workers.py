@@ -85,7 +85,9 @@ class Supervisor:
     def _spawn(self, worker: Worker) -> None:
         command = [sys.executable, "-m", "sim_server.cli", *self.worker_argv]
         worker.process = subprocess.Popen(
-            [*command, "--bind", worker.address], stdout=subprocess.PIPE, text=True
+            [*command, "--bind", worker.address, "--exit-with-parent"],
+            stdout=subprocess.PIPE,
+            text=True,
         )
 
     def _wait_ready(self, worker: Worker) -> str:

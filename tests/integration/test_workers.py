@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from agent_client.connection import Connection
@@ -62,3 +63,30 @@ def test_workers_serve_and_a_killed_one_comes_back() -> None:
         supervisor.stdout.close()
     assert supervisor.returncode == 0
     assert children(supervisor.pid) == []
+
+
+def test_workers_do_not_outlive_a_killed_supervisor() -> None:
+    command = [sys.executable, "-m", "sim_server.cli", "--backend", "fake", "--workers", "2",
+               "--bind", "tcp://127.0.0.1:0"]  # fmt: skip
+    supervisor = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+    try:
+        for _ in range(2):
+            wait_for_line(supervisor, "listening on ", 60.0)
+        workers = children(supervisor.pid)
+        assert len(workers) == 2
+    finally:
+        supervisor.kill()  # SIGKILL: no chance to stop its workers itself
+        supervisor.wait(timeout=30)
+    deadline = time.monotonic() + 20
+    while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [pid for pid in workers if alive(pid)]
+
+
+def alive(pid: int) -> bool:
+    """True while `pid` exists and is not a zombie."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
