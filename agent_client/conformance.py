@@ -21,6 +21,8 @@ from typing import Any, TypeVar
 import msgpack
 import zmq
 
+from agent_client.connection import MalformedReply, ServerUnavailable
+from agent_client.direct_connection import DirectConnection
 from protocol.codec import decode_reply, encode
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import (
@@ -138,7 +140,8 @@ class Report:
 
 
 class Probe:
-    """One request in flight over a REQ socket; every receive has a deadline."""
+    """One request in flight (a REQ socket, or a direct:// connection); every receive has a
+    deadline."""
 
     def __init__(self, address: str, timeout_s: float) -> None:
         self.address = address
@@ -146,15 +149,27 @@ class Probe:
         self.routing_id = f"agent-client-check-{os.getpid()}-{secrets.token_hex(4)}".encode()
         self._context = zmq.Context()
         self._socket: zmq.Socket[bytes] | None = None
+        self._direct: DirectConnection | None = None
+        if parse_endpoint(address).scheme == "direct":
+            self._direct = DirectConnection(address, timeout_s)
+            self._direct.routing_id = self.routing_id
 
     def send(self, frame: bytes, timeout_s: float | None = None) -> bytes:
         """Send one frame and return the one-frame reply; raises NoReply after the deadline."""
+        deadline = self.timeout_s if timeout_s is None else timeout_s
+        if self._direct is not None:
+            try:
+                self._direct.send_raw(frame)
+                return self._direct.receive_frame(deadline)
+            except ServerUnavailable as exc:
+                raise NoReply(str(exc)) from exc
+            except MalformedReply as exc:
+                raise BadReply(str(exc)) from exc
         if self._socket is None:
             credentials = ClientCredentials.from_environment()
             self._socket = connect_req(
                 self._context, self.address, self.routing_id, credentials=credentials
             )
-        deadline = self.timeout_s if timeout_s is None else timeout_s
         self._socket.send(frame)
         if not self._socket.poll(int(deadline * 1000), zmq.POLLIN):
             self.drop()  # a REQ socket that missed its reply cannot send again
@@ -189,6 +204,8 @@ class Probe:
         return self.exchange(request, timeout_s)[1]
 
     def drop(self) -> None:
+        if self._direct is not None:
+            self._direct.drop()
         if self._socket is not None:
             self._socket.close(linger=0)
             self._socket = None

@@ -18,6 +18,8 @@ from __future__ import annotations
 import os
 import secrets
 import time
+from abc import ABC, abstractmethod
+from typing import Self
 
 import zmq
 from zmq.utils.monitor import parse_monitor_message
@@ -75,8 +77,100 @@ class MalformedReply(BridgeError):
     """The server sent something that is not a valid reply of this protocol."""
 
 
-class Connection:
-    """A request/reply channel to one server, with per-request timeouts."""
+class Channel(ABC):
+    """A request/reply channel to one server, with per-request deadlines (either transport).
+
+    Subclasses move frames (`send_raw`, `receive_frame`); everything typed is here.
+    """
+
+    address: str
+    timeout_s: float
+    routing_id: bytes
+
+    @abstractmethod
+    def send_raw(self, frame: bytes) -> None:
+        """Send an already encoded frame (tests use it for malformed input)."""
+
+    @abstractmethod
+    def receive_frame(self, timeout_s: float | None = None) -> bytes:
+        """The reply frame to what was sent, within the deadline; raises `ServerUnavailable`."""
+
+    @abstractmethod
+    def drop(self) -> None:
+        """Forget the current connection (the next send opens a fresh one)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Close everything; never blocks."""
+
+    def request(self, message: Request, timeout_s: float | None = None) -> Reply:
+        """Send one request and return the reply; an `Error` reply raises `ServerError`."""
+        self.send(message)
+        return self.receive_checked(timeout_s)
+
+    def exchange(self, message: Request, timeout_s: float | None = None) -> Reply:
+        """Like `request`, but returns `Error` replies instead of raising."""
+        return self.exchange_raw(encode(message), timeout_s)
+
+    def exchange_raw(self, frame: bytes, timeout_s: float | None = None) -> Reply:
+        """Send an already encoded frame and return the decoded reply."""
+        self.send_raw(frame)
+        return self.receive(timeout_s)
+
+    def send(self, message: Request) -> None:
+        """First half of `request`: send, so that several servers can work at once."""
+        self.send_raw(encode(message))
+
+    def receive(self, timeout_s: float | None = None) -> Reply:
+        """Second half of `request`: the decoded reply to what `send` sent."""
+        frame = self.receive_frame(timeout_s)
+        try:
+            return decode_reply(frame)  # type: ignore[return-value]
+        except ProtocolError as exc:
+            self.drop()
+            raise MalformedReply(f"invalid reply from {self.address}: {exc}") from exc
+
+    def receive_checked(self, timeout_s: float | None = None) -> Reply:
+        """`receive`, raising `ServerError` for an `Error` reply (like `request`)."""
+        reply = self.receive(timeout_s)
+        if isinstance(reply, Error):
+            raise ServerError(reply.code, reply.message)
+        return reply
+
+    def hello(self, timeout_s: float | None = None) -> Welcome:
+        """Handshake: announce our protocol version and receive the server's schemas."""
+        reply = self.request(Hello(PROTOCOL_VERSION, CLIENT_NAME), timeout_s)
+        if not isinstance(reply, Welcome):
+            raise MalformedReply(f"expected welcome, got {reply.TYPE}")
+        return reply
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def connect(
+    address: str,
+    timeout_s: float = 10.0,
+    credentials: ClientCredentials | None = None,
+    heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_MS / 1000,
+    spin_us: float | None = None,
+) -> Channel:
+    """A channel to `address`: ZeroMQ for ``tcp://`` and ``ipc://``, a plain socket for
+    ``direct://`` (`spin_us`: how long to busy-wait for a reply; direct only)."""
+    if parse_endpoint(address).scheme == "direct":
+        from agent_client.direct_connection import DirectConnection
+
+        if credentials is not None:
+            raise ValueError("direct:// has no CURVE authentication: use tcp:// with keys")
+        return DirectConnection(address, timeout_s, spin_us=spin_us)
+    return Connection(address, timeout_s, credentials, heartbeat_timeout_s)
+
+
+class Connection(Channel):
+    """The ZeroMQ channel: a REQ socket (Lazy Pirate), heartbeats, CURVE when keys are given."""
 
     def __init__(
         self,
@@ -100,31 +194,12 @@ class Connection:
         """A handshake succeeded on the current connection (requests reach the server)."""
         self._failed_handshakes = 0
 
-    def request(self, message: Request, timeout_s: float | None = None) -> Reply:
-        """Send one request and return the reply; an `Error` reply raises `ServerError`."""
-        self.send(message)
-        return self.receive_checked(timeout_s)
-
-    def exchange(self, message: Request, timeout_s: float | None = None) -> Reply:
-        """Like `request`, but returns `Error` replies instead of raising."""
-        return self.exchange_raw(encode(message), timeout_s)
-
-    def exchange_raw(self, frame: bytes, timeout_s: float | None = None) -> Reply:
-        """Send an already encoded frame (tests use it for malformed input)."""
-        self.send_raw(frame)
-        return self.receive(timeout_s)
-
-    def send(self, message: Request) -> None:
-        """First half of `request`: send, so that several servers can work at once."""
-        self.send_raw(encode(message))
-
     def send_raw(self, frame: bytes) -> None:
         socket = self._ensure_socket()
         self._check_events(waiting=False)
         socket.send(frame)
 
-    def receive(self, timeout_s: float | None = None) -> Reply:
-        """Second half of `request`: the reply to what `send` sent, within the deadline."""
+    def receive_frame(self, timeout_s: float | None = None) -> bytes:
         socket = self._socket
         if socket is None:
             raise RuntimeError("receive() without a request in flight")
@@ -149,25 +224,10 @@ class Connection:
         if len(frames) != 1:
             self._drop_socket()
             raise MalformedReply(f"reply from {self.address} has {len(frames)} frames, expected 1")
-        try:
-            return decode_reply(frames[0])  # type: ignore[return-value]
-        except ProtocolError as exc:
-            self._drop_socket()
-            raise MalformedReply(f"invalid reply from {self.address}: {exc}") from exc
+        return frames[0]
 
-    def receive_checked(self, timeout_s: float | None = None) -> Reply:
-        """`receive`, raising `ServerError` for an `Error` reply (like `request`)."""
-        reply = self.receive(timeout_s)
-        if isinstance(reply, Error):
-            raise ServerError(reply.code, reply.message)
-        return reply
-
-    def hello(self, timeout_s: float | None = None) -> Welcome:
-        """Handshake: announce our protocol version and receive the server's schemas."""
-        reply = self.request(Hello(PROTOCOL_VERSION, CLIENT_NAME), timeout_s)
-        if not isinstance(reply, Welcome):
-            raise MalformedReply(f"expected welcome, got {reply.TYPE}")
-        return reply
+    def drop(self) -> None:
+        self._drop_socket()
 
     def _check_events(self, waiting: bool) -> None:
         """Read the socket's pending events; raise if the connection broke or was refused.
@@ -233,19 +293,13 @@ class Connection:
         self._drop_socket()
         self._context.term()
 
-    def __enter__(self) -> Connection:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
 
 def wait_for_server(address: str, timeout_s: float = 30.0) -> Welcome:
     """Retry hello until the server answers (for scripts that just started one)."""
     deadline = time.monotonic() + timeout_s
     while True:
         remaining = deadline - time.monotonic()
-        with Connection(address, timeout_s=max(0.1, min(1.0, remaining))) as connection:
+        with connect(address, timeout_s=max(0.1, min(1.0, remaining))) as connection:
             try:
                 return connection.hello()
             except ServerUnavailable:

@@ -20,11 +20,12 @@ from gymnasium import spaces
 
 from agent_client.connection import (
     BridgeError,
-    Connection,
+    Channel,
     MalformedReply,
     ServerError,
     ServerTimeout,
     ServerUnavailable,
+    connect,
 )
 from protocol.messages import Close, Observation, OptionValue, Reset, Step, Welcome
 from protocol.schema import Flattener
@@ -63,7 +64,7 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         self.reward_fn = _resolve_reward(reward)
         self.timeout_s = timeout_s
         self._credentials = credentials
-        self._connection = Connection(address, timeout_s, credentials)
+        self._connection: Channel = connect(address, timeout_s, credentials)
         try:
             self.welcome: Welcome = self._connection.hello(timeout_s)
             self.scenario_options = self._check_scenario()
@@ -138,7 +139,7 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         if self._connection is not None:
             self._connection.close()
         self._done, self._last = True, None
-        self._connection = Connection(self.address, self.timeout_s, self._credentials)
+        self._connection = connect(self.address, self.timeout_s, self._credentials)
         while True:
             remaining = deadline - time.monotonic()
             try:
@@ -162,7 +163,7 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         if getattr(self, "_connection", None) is None:
             return
         # The server may be gone or broken: closing our side is all that is left then.
-        with contextlib.suppress(BridgeError, zmq.ZMQError):
+        with contextlib.suppress(BridgeError, zmq.ZMQError, OSError):
             self._connection.exchange(Close(), timeout_s=1.0)
         self._connection.close()
         self._connection = None  # type: ignore[assignment]

@@ -40,7 +40,10 @@ HEARTBEAT_TIMEOUT_MS = 5000
 
 @dataclass(frozen=True)
 class Endpoint:
-    """A parsed ``tcp://HOST:PORT`` or ``ipc://PATH`` address."""
+    """A parsed ``tcp://HOST:PORT``, ``ipc://PATH`` or ``direct://HOST:PORT`` address.
+
+    ``tcp`` and ``ipc`` are ZeroMQ; ``direct`` is the plain-socket transport of `protocol.direct`.
+    """
 
     scheme: str
     host: str = ""
@@ -51,7 +54,7 @@ class Endpoint:
         if self.scheme == "ipc":
             return f"ipc://{self.path}"
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"tcp://{host}:{self.port}"
+        return f"{self.scheme}://{host}:{self.port}"
 
     @property
     def is_loopback(self) -> bool:
@@ -73,14 +76,14 @@ def parse_endpoint(address: str) -> Endpoint:
         if not path:
             raise ValueError(f"{address!r}: ipc address needs a path, e.g. ipc:///tmp/bridge.sock")
         return Endpoint("ipc", path=path)
-    if address.startswith("tcp://"):
-        rest = address[len("tcp://") :]
+    scheme, sep, rest = address.partition("://")
+    if sep and scheme in ("tcp", "direct"):
         host, sep, port_text = rest.rpartition(":")
         host = host.strip("[]")
         if not sep or not host or not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
-            raise ValueError(f"{address!r}: expected tcp://HOST:PORT with PORT in 0..65535")
-        return Endpoint("tcp", host=host, port=int(port_text))
-    raise ValueError(f"{address!r}: expected tcp://HOST:PORT or ipc://PATH")
+            raise ValueError(f"{address!r}: expected {scheme}://HOST:PORT with PORT in 0..65535")
+        return Endpoint(scheme, host=host, port=int(port_text))
+    raise ValueError(f"{address!r}: expected tcp://HOST:PORT, ipc://PATH or direct://HOST:PORT")
 
 
 def _set_heartbeats(socket: zmq.Socket[bytes], timeout_ms: int) -> None:

@@ -16,10 +16,12 @@ from pathlib import Path
 from types import FrameType
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES
+from protocol.direct import DEFAULT_SPIN_US
 from protocol.security import KeyPair, ServerCredentials, generate_keys, load_key_pair
 from protocol.transport import DEFAULT_ADDRESS, HEARTBEAT_TIMEOUT_MS, parse_endpoint
 from sim_server import __version__
 from sim_server.backend import Backend
+from sim_server.direct_server import DirectServer
 from sim_server.server import DEFAULT_SESSION_TIMEOUT_S, Server, Session, format_listening
 
 SECRET_KEY_ENV = "SIM_SERVER_SECRET_KEY"
@@ -31,12 +33,13 @@ BACKENDS = ("sumo", "sumo-traci", "fake", "highway")
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sim-server",
-        description="Serve a traffic simulator to a learner over the bridge protocol (ZeroMQ).",
+        description="Serve a traffic simulator to a learner over the bridge protocol.",
     )
     parser.add_argument(
         "--bind",
         default=DEFAULT_ADDRESS,
         help="address to listen on: tcp://HOST:PORT (port 0 picks a free port) or ipc://PATH "
+        "(ZeroMQ), or direct://127.0.0.1:PORT (plain socket, loopback only, fastest) "
         f"(default {DEFAULT_ADDRESS})",
     )
     parser.add_argument(
@@ -115,6 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         help="run N servers (one simulation each) on consecutive ports from --bind (port 0: free "
         "ports), print one readiness line per worker, restart any that dies (default 1)",
+    )
+    parser.add_argument(
+        "--spin-us",
+        type=float,
+        help="direct:// only: microseconds to busy-wait for the next request before blocking "
+        f"(default {DEFAULT_SPIN_US}; 0 never spins: less CPU, higher latency)",
     )
     parser.add_argument(
         "--exit-with-parent",
@@ -214,6 +223,16 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
     credentials = load_credentials(parser, args)
+    if endpoint.scheme == "direct":
+        if credentials is not None:
+            parser.error("direct:// has no CURVE: use tcp:// with --secret-key")
+        if not endpoint.is_loopback:
+            parser.error(
+                f"{args.bind}: direct:// binds loopback addresses only (no authentication); "
+                "use tcp:// with --secret-key across machines"
+            )
+    elif args.spin_us is not None:
+        parser.error("--spin-us applies to direct:// addresses only")
     if not endpoint.is_loopback and credentials is None and not args.insecure:
         parser.error(
             f"{args.bind} is reachable from other machines: turn on authentication with "
@@ -238,7 +257,11 @@ def main(argv: list[str] | None = None) -> int:
     backend = make_backend(args)
     session = Session(backend, args.max_frame_bytes, args.session_timeout)
     try:
-        server = Server(session, args.bind, credentials, args.heartbeat_timeout)
+        server: Server | DirectServer = (
+            DirectServer(session, args.bind, _spin_us(args))
+            if endpoint.scheme == "direct"
+            else Server(session, args.bind, credentials, args.heartbeat_timeout)
+        )
     except Exception as exc:  # zmq.ZMQError and OS errors: report and exit cleanly
         backend.close()
         print(f"sim-server: cannot bind {args.bind}: {exc}", file=sys.stderr)
@@ -266,7 +289,11 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def stop_with_parent(server: Server, check_interval_s: float = 0.5) -> None:
+def _spin_us(args: argparse.Namespace) -> float:
+    return DEFAULT_SPIN_US if args.spin_us is None else max(0.0, args.spin_us)
+
+
+def stop_with_parent(server: Server | DirectServer, check_interval_s: float = 0.5) -> None:
     """Stop `server` once this process's parent is gone (the process is re-parented)."""
     parent = os.getppid()
 

@@ -38,7 +38,7 @@ def worker_addresses(bind: str, count: int) -> list[str]:
     if endpoint.port and endpoint.port + count - 1 > 65535:
         raise ValueError(f"{count} workers from port {endpoint.port} run past port 65535")
     return [
-        str(Endpoint("tcp", endpoint.host, endpoint.port + i if endpoint.port else 0))
+        str(Endpoint(endpoint.scheme, endpoint.host, endpoint.port + i if endpoint.port else 0))
         for i in range(count)
     ]
 

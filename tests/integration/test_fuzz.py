@@ -853,7 +853,7 @@ def test_remote_env_refuses_a_bad_schema_with_malformed_reply(
             super().__init__(*args, **kwargs)
             connections.append(self)
 
-    monkeypatch.setattr("agent_client.remote_env.Connection", Tracked)
+    monkeypatch.setattr("agent_client.connection.Connection", Tracked)  # what connect() builds
     try:
         with pytest.raises(MalformedReply):
             RemoteEnv(evil.address, "cf", reward=zero_reward, timeout_s=CLIENT_TIMEOUT_S)

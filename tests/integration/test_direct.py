@@ -1,0 +1,206 @@
+"""The direct transport over real processes: same stream as ZeroMQ, faults, hostile bytes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from agent_client.conformance import PASS, run_checks
+from agent_client.connection import ServerError, ServerLost, ServerTimeout, connect
+from agent_client.direct_connection import DirectConnection
+from agent_client.idm import IDMDriver
+from protocol.codec import decode_reply, encode
+from protocol.direct import LENGTH, frame, preamble
+from protocol.messages import Error, Hello, Observation, Reset, Step, Welcome
+from protocol.version import PROTOCOL_VERSION
+from tests.agent_client.test_conformance import CHECKS
+from tests.conftest import sim_server
+
+DIRECT = "direct://127.0.0.1:0"
+
+
+def drive(address: str, scenario: str, seed: int, steps: int) -> list[bytes]:
+    """IDM with a lane change now and then; the observations' wire bytes."""
+    with connect(address, timeout_s=60.0) as connection:
+        connection.hello()
+        obs = connection.request(Reset(scenario, seed), timeout_s=120.0)
+        assert isinstance(obs, Observation)
+        stream, driver = [encode(obs)], IDMDriver()
+        for seq in range(1, steps + 1):
+            change = (1 if obs.ego.lane == 0 else -1) if seq % 41 == 7 else 0
+            obs = connection.request(Step(seq, driver.act(obs)[0], change))
+            assert isinstance(obs, Observation)
+            stream.append(encode(obs))
+            if obs.terminated or obs.truncated:
+                break
+    return stream
+
+
+@pytest.mark.sumo
+def test_direct_and_zeromq_carry_the_same_stream(scenario_cache: Path) -> None:
+    with (
+        sim_server("--backend", "sumo", cache_dir=scenario_cache, bind=DIRECT) as direct,
+        sim_server("--backend", "sumo", cache_dir=scenario_cache) as zeromq,
+    ):
+        assert direct.address.startswith("direct://127.0.0.1:")
+        for scenario, seed in (("cf", 3), ("cflc", 5)):
+            assert drive(direct.address, scenario, seed, 300) == drive(
+                zeromq.address, scenario, seed, 300
+            )
+
+
+@pytest.mark.sumo
+def test_the_sumo_server_conforms_over_direct(scenario_cache: Path) -> None:
+    with sim_server("--backend", "sumo", cache_dir=scenario_cache, bind=DIRECT) as server:
+        report = run_checks(server.address, "cflc", timeout_s=30.0)
+        assert {r.name: r.status for r in report.results} == dict.fromkeys(CHECKS, PASS), (
+            report.format_table()
+        )
+
+
+def test_a_lost_reply_is_retried_on_a_fresh_connection_without_advancing_twice() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        channel = DirectConnection(server.address, timeout_s=10.0)
+        channel.hello()
+        channel.request(Reset("cf", 1))
+        first = channel.request(Step(1, 0.5))
+        channel.send(Step(2, 0.5))
+        channel.drop()  # the reply to step 2 is lost with the connection
+        again = channel.request(Step(2, 0.5))  # Lazy Pirate: same routing id, fresh socket
+        assert isinstance(first, Observation) and isinstance(again, Observation)
+        assert again.seq == 2
+        assert channel.request(Step(2, 0.5)) == again  # answered from the cache
+        third = channel.request(Step(3, 0.5))
+        assert isinstance(third, Observation)
+        assert third.time == pytest.approx(first.time + 2 * 0.1)  # advanced once per step
+        channel.close()
+
+
+def test_a_second_client_is_busy_and_takes_over_once_the_first_is_gone() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        owner = DirectConnection(server.address, timeout_s=10.0)
+        owner.hello()
+        owner.request(Reset("cf", 1))
+        other = DirectConnection(server.address, timeout_s=10.0)
+        with pytest.raises(ServerError) as refused:
+            other.hello()
+        assert refused.value.code == "busy"
+        owner.close()  # its connection closes: the simulator is free at once
+        assert isinstance(other.hello(), Welcome)
+        other.close()
+
+
+def test_a_killed_server_is_reported_at_once(tmp_path: Path) -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        channel = DirectConnection(server.address, timeout_s=30.0)
+        channel.hello()
+        channel.request(Reset("cf", 1))
+        channel.send(Step(1, 0.0))
+        channel.receive()
+        server.process.send_signal(signal.SIGKILL)
+        server.process.wait(timeout=10)
+        started = time.monotonic()
+        with pytest.raises((ServerLost, ServerTimeout)):
+            channel.request(Step(2, 0.0))
+        assert time.monotonic() - started < 5.0  # not the 30 s deadline
+        channel.close()
+
+
+def test_a_frozen_server_times_out_within_the_deadline() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        channel = DirectConnection(server.address, timeout_s=10.0)
+        channel.hello()
+        os.kill(server.process.pid, signal.SIGSTOP)
+        try:
+            started = time.monotonic()
+            with pytest.raises(ServerTimeout):
+                channel.request(Reset("cf", 1), timeout_s=1.0)
+            assert time.monotonic() - started < 3.0
+        finally:
+            os.kill(server.process.pid, signal.SIGCONT)
+        channel.close()
+
+
+def test_hostile_bytes_close_that_connection_and_the_server_goes_on() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        host, port = server.address.removeprefix("direct://").rsplit(":", 1)
+        attacks = [
+            b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",  # not our preamble
+            preamble(b"evil") + LENGTH.pack(1 << 30),  # a 1 GiB frame announced
+            preamble(b"evil") + frame(b"\xc1\xff\x00garbage"),  # answered with an error
+            os.urandom(4096),
+        ]
+        answers = []
+        for attack in attacks:
+            with socket.create_connection((host, int(port)), timeout=5.0) as raw:
+                raw.sendall(attack)
+                raw.shutdown(socket.SHUT_WR)
+                answer = b""
+                while chunk := raw.recv(65536):  # the server closes: EOF, not a hang
+                    answer += chunk
+                answers.append(answer)
+        assert answers[0] == answers[1] == answers[3] == b""  # dropped without a word
+        (size,) = LENGTH.unpack_from(answers[2])
+        error = decode_reply(answers[2][LENGTH.size :])
+        assert size == len(answers[2]) - LENGTH.size
+        assert isinstance(error, Error) and error.code == "decode_error"
+        with DirectConnection(server.address, timeout_s=10.0) as channel:
+            assert isinstance(channel.hello(), Welcome)
+            assert isinstance(channel.request(Reset("cf", 2)), Observation)
+        assert server.process.poll() is None
+
+
+def test_the_error_reply_to_garbage_is_a_protocol_error() -> None:
+    with (
+        sim_server("--backend", "fake", bind=DIRECT) as server,
+        DirectConnection(server.address, timeout_s=10.0) as channel,
+    ):
+        reply = channel.exchange_raw(b"\xc1")
+        assert reply.TYPE == "error"
+        assert channel.request(Hello(PROTOCOL_VERSION, "after-garbage")).TYPE == "welcome"
+
+
+@pytest.mark.parametrize(
+    ("arguments", "complaint"),
+    [
+        (["--bind", "direct://0.0.0.0:0"], "loopback addresses only"),
+        (["--bind", "tcp://127.0.0.1:0", "--spin-us", "10"], "direct:// addresses only"),
+    ],
+)
+def test_direct_usage_errors(arguments: list[str], complaint: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "sim_server.cli", "--backend", "fake", *arguments],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert result.returncode == 2
+    assert complaint in result.stderr
+
+
+def test_keys_are_refused_for_direct() -> None:
+    from protocol.security import ClientCredentials
+
+    fake_keys = ClientCredentials.__new__(ClientCredentials)
+    with pytest.raises(ValueError, match="no CURVE"):
+        connect("direct://127.0.0.1:1", credentials=fake_keys)
+
+
+@pytest.mark.sumo
+def test_agent_client_drives_over_direct(scenario_cache: Path) -> None:
+    with sim_server("--backend", "sumo", cache_dir=scenario_cache, bind=DIRECT) as server:
+        result = subprocess.run(
+            [sys.executable, "-m", "agent_client.cli", "drive", "--server", server.address,
+             "--scenario", "cflc", "--policy", "idm", "--episodes", "1", "--seed", "2", "--json"],
+            capture_output=True, text=True, timeout=300, check=False,
+        )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    (episode,) = [json.loads(line) for line in result.stdout.splitlines()]
+    assert episode["collisions"] == 0
+    assert episode["reason"] == "end_of_road"
