@@ -27,18 +27,18 @@ sys.path.insert(0, str(ROOT))
 
 from agent_client.config import TrainConfig, apply_overrides, parse_assignment  # noqa: E402
 from agent_client.train import QuietReporter, Trainer  # noqa: E402
+from sim_server.readiness import LISTENING, NotReady, wait_for_line  # noqa: E402
 
 
 def start_server() -> tuple[subprocess.Popen[str], str]:
     command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
                "--log-level", "WARNING"]  # fmt: skip
     server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    assert server.stdout is not None
-    line = server.stdout.readline()  # the readiness line; the server prints nothing before it
-    if not line.startswith("listening on "):
+    try:
+        return server, wait_for_line(server, LISTENING, 60.0)
+    except NotReady:
         server.kill()
-        raise RuntimeError(f"sim-server did not start: {line!r}")
-    return server, line.removeprefix("listening on ").strip()
+        raise
 
 
 class Deadline(QuietReporter):

@@ -64,6 +64,10 @@ class FrameReader:
 
     def feed(self, data: bytes) -> list[bytes]:
         """Add received bytes; return the frames now complete."""
+        if not self._buffer and self.routing_id is not None and len(data) >= LENGTH.size:
+            (size,) = LENGTH.unpack_from(data)  # the usual case: exactly one whole frame
+            if len(data) == LENGTH.size + size and size <= self.max_bytes:
+                return [data[LENGTH.size :]]
         self._buffer += data
         frames: list[bytes] = []
         if self.routing_id is None and not self._read_preamble():
