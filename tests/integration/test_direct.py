@@ -19,7 +19,7 @@ from agent_client.direct_connection import DirectConnection
 from agent_client.idm import IDMDriver
 from protocol.codec import decode_reply, encode
 from protocol.direct import LENGTH, frame, preamble
-from protocol.messages import Error, Hello, Observation, Reset, Step, Welcome
+from protocol.messages import Close, Error, Hello, Observation, Reset, Step, Welcome
 from protocol.version import PROTOCOL_VERSION
 from tests.agent_client.test_conformance import CHECKS
 from tests.conftest import sim_server
@@ -77,11 +77,25 @@ def test_a_lost_reply_is_retried_on_a_fresh_connection_without_advancing_twice()
         again = channel.request(Step(2, 0.5))  # Lazy Pirate: same routing id, fresh socket
         assert isinstance(first, Observation) and isinstance(again, Observation)
         assert again.seq == 2
+        assert again.time == pytest.approx(first.time + 0.1)  # step 2 ran once, not twice
         assert channel.request(Step(2, 0.5)) == again  # answered from the cache
         third = channel.request(Step(3, 0.5))
         assert isinstance(third, Observation)
         assert third.time == pytest.approx(first.time + 2 * 0.1)  # advanced once per step
         channel.close()
+
+
+def hello_when_free(channel: DirectConnection, within_s: float) -> float:
+    """Say hello until it is not `busy`; the seconds it took."""
+    started = time.monotonic()
+    while True:
+        try:
+            channel.hello()
+            return time.monotonic() - started
+        except ServerError as exc:
+            if exc.code != "busy" or time.monotonic() - started > within_s:
+                raise
+            time.sleep(0.01)
 
 
 def test_a_second_client_is_busy_and_takes_over_once_the_first_is_gone() -> None:
@@ -94,8 +108,144 @@ def test_a_second_client_is_busy_and_takes_over_once_the_first_is_gone() -> None
             other.hello()
         assert refused.value.code == "busy"
         owner.close()  # its connection closes: the simulator is free at once
-        assert isinstance(other.hello(), Welcome)
+        assert hello_when_free(other, 5.0) < 1.0
         other.close()
+
+
+def test_a_reconnecting_owner_replaces_its_open_connection_and_keeps_the_simulator() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        owner = DirectConnection(server.address, timeout_s=10.0)
+        owner.hello()
+        owner.request(Reset("cf", 1))
+        step_1 = owner.request(Step(1, 0.5))
+        old_socket = owner._sock
+        assert old_socket is not None
+        again = DirectConnection(server.address, timeout_s=10.0)
+        again.routing_id = owner.routing_id  # the same client on a fresh connection
+        assert again.request(Step(1, 0.5)) == step_1  # the cached reply: the step did not repeat
+        old_socket.settimeout(5.0)
+        assert old_socket.recv(1) == b""  # the server closed the replaced connection
+        with DirectConnection(server.address, timeout_s=10.0) as stranger:
+            with pytest.raises(ServerError) as refused:
+                stranger.hello()
+            assert refused.value.code == "busy"  # the handover did not free the simulator
+        assert isinstance(again.request(Step(2, 0.5)), Observation)
+        owner.close()
+        again.close()
+
+
+def test_a_closing_stranger_does_not_free_the_owners_simulator() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        owner = DirectConnection(server.address, timeout_s=10.0)
+        owner.hello()
+        owner.request(Reset("cf", 1))
+        with (
+            DirectConnection(server.address, timeout_s=10.0) as stranger,
+            pytest.raises(ServerError),
+        ):
+            stranger.hello()
+        with DirectConnection(server.address, timeout_s=10.0) as third:
+            with pytest.raises(ServerError) as refused:
+                third.hello()
+            assert refused.value.code == "busy"
+        assert isinstance(owner.request(Step(1, 0.0)), Observation)
+        owner.close()
+
+
+def read_until_closed(sock: socket.socket) -> int:
+    """Bytes received until the peer closes (EOF or reset); a timeout fails the test."""
+    total = 0
+    try:
+        while chunk := sock.recv(1 << 16):
+            total += len(chunk)
+    except ConnectionResetError:
+        pass
+    return total
+
+
+def test_a_client_that_never_reads_cannot_stall_the_owner() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        owner = DirectConnection(server.address, timeout_s=10.0)
+        owner.hello()
+        owner.request(Reset("cf", 1))
+        host, port = server.address.removeprefix("direct://").rsplit(":", 1)
+        flood = frame(encode(Hello(PROTOCOL_VERSION, "flood"))) * 3000  # ~3000 replies queued
+        with socket.create_connection((host, int(port)), timeout=5.0) as greedy:
+            greedy.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            greedy.sendall(preamble(b"greedy") + flood)
+            slowest = 0.0
+            for seq in range(1, 201):
+                started = time.monotonic()
+                assert isinstance(owner.request(Step(seq, 0.0), timeout_s=5.0), Observation)
+                slowest = max(slowest, time.monotonic() - started)
+            assert slowest < 1.0
+        owner.close()
+        assert server.process.poll() is None
+
+
+def test_unread_replies_beyond_the_cap_close_that_connection() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        with DirectConnection(server.address, timeout_s=10.0) as first:
+            welcome_bytes = len(frame(encode(first.hello())))
+            first.request(Close())
+        assert 3000 * welcome_bytes > 2 * 1024 * 1024
+        host, port = server.address.removeprefix("direct://").rsplit(":", 1)
+        flood = frame(encode(Hello(PROTOCOL_VERSION, "flood"))) * 3000
+        with socket.create_connection((host, int(port)), timeout=10.0) as greedy:
+            greedy.sendall(preamble(b"greedy") + flood)
+            assert read_until_closed(greedy) < 3000 * welcome_bytes  # cut off, not all answered
+        with DirectConnection(server.address, timeout_s=10.0) as channel:
+            assert hello_when_free(channel, 5.0) < 1.0  # the greedy client's session is gone
+
+
+def test_silent_connections_cannot_lock_the_owner_out() -> None:
+    with sim_server("--backend", "fake", bind=DIRECT) as server:
+        owner = DirectConnection(server.address, timeout_s=10.0)
+        owner.hello()
+        owner.request(Reset("cf", 1))
+        host, port = server.address.removeprefix("direct://").rsplit(":", 1)
+        idle = [socket.create_connection((host, int(port)), timeout=5.0) for _ in range(80)]
+        try:
+            for seq in range(1, 4):
+                assert isinstance(owner.request(Step(seq, 0.0)), Observation)
+            owner.drop()  # Lazy Pirate reconnect while the server is full of idle sockets
+            assert isinstance(owner.request(Step(4, 0.0)), Observation)
+            nameless = idle[-1]  # a connection that never sent its preamble is closed in ~5 s
+            nameless.settimeout(10.0)
+            started = time.monotonic()
+            assert read_until_closed(nameless) == 0
+            assert time.monotonic() - started < 9.0
+        finally:
+            for sock in idle:
+                sock.close()
+        owner.close()
+
+
+def test_a_request_waits_for_a_server_that_is_still_starting(tmp_path: Path) -> None:
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    channel = DirectConnection(f"direct://127.0.0.1:{port}", timeout_s=30.0)
+    channel.send(Hello(PROTOCOL_VERSION, "early"))  # nobody listens yet: kept for later
+    with sim_server("--backend", "fake", bind=f"direct://127.0.0.1:{port}"):
+        assert isinstance(channel.receive(), Welcome)
+    channel.close()
+    lonely = DirectConnection(f"direct://127.0.0.1:{port}", timeout_s=0.3)
+    with pytest.raises(ServerTimeout, match="cannot connect"):
+        lonely.hello()
+
+
+def test_both_ends_refuse_non_loopback_addresses() -> None:
+    from sim_server.direct_server import DirectServer
+    from sim_server.fake_backend import FakeBackend
+    from sim_server.server import Session
+
+    session = Session(FakeBackend())
+    with pytest.raises(ValueError, match="loopback"):
+        DirectServer(session, "direct://0.0.0.0:0")
+    with pytest.raises(ValueError, match="one machine only"):
+        DirectConnection("direct://192.0.2.1:5556")
 
 
 def test_a_killed_server_is_reported_at_once(tmp_path: Path) -> None:

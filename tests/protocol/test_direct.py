@@ -49,7 +49,7 @@ def test_any_chunking_yields_the_routing_id_and_the_frames(
     assert reader.pending == 0
 
 
-def test_a_frame_over_the_cap_is_refused_before_it_is_buffered() -> None:
+def test_a_frame_over_the_cap_is_refused_without_waiting_for_its_bytes() -> None:
     reader = FrameReader(max_bytes=1000)
     with pytest.raises(FramingError, match="exceeds 1000"):
         reader.feed(LENGTH.pack(1001) + b"x" * 10)
