@@ -369,9 +369,10 @@ class SafeReward:
 
     - Efficiency v / v_limit (``obs.ego.speed_limit``), clipped to [0, 1]: speeding never pays.
     - Headway h = gap / v; H(h) = exp(-ln(h / h_d)^2 / (2 sigma^2)), the log-normal headway
-      likelihood of Zhu et al. (2020) with mu = ln(h_d), rescaled to peak 1 at h = h_d = 1.5 s,
-      sigma = 0.5 below h_d: H(1.0 s) = 0.72, H(0.5 s) = 0.09, so tailgating earns less than
-      following at the same speed. Above h_d, sigma_far (default inf) keeps H = 1: a far leader
+      likelihood of Zhu et al. (2020) with mu = ln(h_d), rescaled to peak 1 at h = h_d = 1.2 s,
+      sigma = 0.3 below h_d: H(1.0 s) = 0.83, H(0.8 s) = 0.40, H(0.5 s) = 0.01, so tailgating
+      earns less than following at the same speed (h_d lies between the evaluation's 1.0 s safety
+      line and IDM's 1.5 s, so the learner follows a little closer than IDM). Above h_d, sigma_far (default inf) keeps H = 1: a far leader
       scores like an empty road, which has H = 1 - good free driving, never below a crash.
     - TTC = gap / (v - v_leader) when closing in; P = 1 - TTC / 4 s below 4 s, growing to 1 as
       TTC -> 0: the share of the drive term lost (a gate, not a subtraction, so the penalty keeps
@@ -389,15 +390,15 @@ class SafeReward:
     now: at no state is a crash (or any episode end) better than going on.
     `min_collision_penalty(gamma)` gives the bound for other gammas.
     Full throttle (3 m/s^2) from 15 m/s, 30 m behind a 15 m/s leader (see the test
-    test_safe_full_throttle_crash_is_worse_than_following): the crash after 5.4 s returns 6.2 at
+    test_safe_full_throttle_crash_is_worse_than_following): the crash after 5.4 s returns 6.4 at
     gamma = 0.99 (the headway and TTC gates take the drive term to 0 while closing in, then
     -20 * 0.99^53 = -11.7), against 67.3 for following at 15 m/s; under r_a3 the same runs
     return 26.9 and 37.4, so there the crash earns 72 % of the follower's return.
     """
 
-    desired_headway: float = 1.5
-    """h_d (s): where the headway term peaks."""
-    headway_sigma: float = 0.5
+    desired_headway: float = 1.2
+    """h_d (s): where the headway term peaks (below IDM's 1.5 s, above the 1.0 s safety line)."""
+    headway_sigma: float = 0.3
     """Log-normal sigma of H below h_d."""
     headway_far_sigma: float = math.inf
     """Log-normal sigma of H above h_d; inf keeps H = 1 for long headways."""

@@ -25,7 +25,9 @@ def add_train_parser(commands: Any, add_connection_arguments: Any) -> None:
     train.add_argument("--out", type=Path, help="run folder (default runs/SCENARIO-REWARD-SEED)")
     train.add_argument("--reward", help="safe (default), ra1, ra2, ra3, ra4 or rlc")
     train.add_argument("--episodes", type=int, help="training episodes (default 300)")
-    train.add_argument("--algo", choices=("ddpg", "td3"), help="learner (default ddpg)")
+    train.add_argument(
+        "--algo", choices=("ddpg", "td3"), help="learner (default td3: DDPG with its three fixes)"
+    )
     train.add_argument("--seed", type=int, help="seed (default 0)")
     train.add_argument(
         "--pretrain-idm", action="store_true", default=None, help="behaviour-clone IDM first"

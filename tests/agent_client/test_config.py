@@ -12,7 +12,7 @@ from agent_client.train_cli import build_config
 def test_defaults_are_documented_dataclass_fields() -> None:
     config = TrainConfig()
     assert config.reward == "safe"
-    assert config.ddpg.algo == "ddpg"
+    assert config.ddpg.algo == "td3"  # the recommended learner
     assert TrainConfig.from_dict(config.to_dict()) == config
 
 
@@ -34,7 +34,7 @@ def test_precedence_defaults_file_flags_set(tmp_path: Path) -> None:
     file.write_text('episodes = 50\nreward = "ra3"\nseed = 4\n[ddpg]\nactor_lr = 0.002\n')
     assert load_config_file(file)["ddpg"] == {"actor_lr": 0.002}
     args = build_parser().parse_args(
-        ["train", "--config", str(file), "--episodes", "70", "--algo", "td3",
+        ["train", "--config", str(file), "--episodes", "70", "--algo", "ddpg",
          "--set", "seed=9", "--set", "ddpg.critic_lr=0.01"]
     )  # fmt: skip
     config = build_config(args)
@@ -43,4 +43,5 @@ def test_precedence_defaults_file_flags_set(tmp_path: Path) -> None:
     assert config.seed == 9  # --set beats file
     assert config.ddpg.actor_lr == 0.002
     assert config.ddpg.critic_lr == 0.01
-    assert config.ddpg.algo == "td3"
+    assert config.ddpg.algo == "ddpg"  # --algo switches the trio off, keeps the rest
+    assert config.ddpg.gamma == TrainConfig().ddpg.gamma

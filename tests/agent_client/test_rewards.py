@@ -277,7 +277,7 @@ def test_safe_full_throttle_crash_is_worse_than_following() -> None:
     safe, ra3 = SafeReward(), NormalisedReward()
     crash, follow = drive(safe, 3.0), drive(safe, 0.0)
     assert len(crash) == 54 and crash[-1] == -20.0 and len(follow) == 600
-    assert discounted(crash) == pytest.approx(6.2, abs=0.1)
+    assert discounted(crash) == pytest.approx(6.4, abs=0.1)
     assert discounted(follow) == pytest.approx(67.3, abs=0.1)
     assert discounted(crash) < 0.1 * discounted(follow)
     # the docstring's comparison: under r_a3 the crash run earns most of the follower's return
@@ -291,6 +291,13 @@ def test_safe_tailgating_pays_less_than_safe_following() -> None:
         assert safe_at(speed, 0.5) < safe_at(speed, 1.0) < safe_at(speed, 1.5)
     assert safe_at(15.0, 1.5) == pytest.approx(15.0 / LIMIT)
     assert safe_at(15.0, 0.5) < 0.1 * safe_at(15.0, 1.5)
+
+
+def test_safe_headway_knee_sits_between_the_safety_line_and_idm() -> None:
+    # exp(-ln(h / 1.2)^2 / (2 * 0.3^2)), by hand: h = 1.0 -> 0.8314, 0.8 -> 0.4012, 0.5 -> 0.0142
+    expected = {1.5: 1.0, 1.2: 1.0, 1.0: 0.8314, 0.8: 0.4012, 0.5: 0.0142}
+    for headway, score in expected.items():
+        assert safe_at(15.0, headway) == pytest.approx(15.0 / LIMIT * score, abs=1e-4)
 
 
 def test_safe_no_leader_scores_like_good_free_driving() -> None:
