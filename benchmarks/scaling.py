@@ -35,20 +35,18 @@ import numpy as np  # noqa: E402
 from agent_client.config import TrainConfig, apply_overrides  # noqa: E402
 from agent_client.train import QuietReporter, Trainer  # noqa: E402
 from agent_client.vector_env import RemoteVectorEnv  # noqa: E402
+from sim_server.readiness import LISTENING, NotReady, wait_for_line  # noqa: E402
 
 
 def start_workers(count: int, backend: str) -> tuple[subprocess.Popen[str], list[str]]:
     command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
                "--workers", str(count), "--backend", backend, "--log-level", "WARNING"]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
-    assert process.stdout is not None
-    addresses = []
-    for _ in range(count):  # one readiness line per worker, printed once all are ready
-        line = process.stdout.readline()
-        if not line.startswith("listening on "):
-            process.kill()
-            raise RuntimeError(f"sim-server --workers did not start: {line!r}")
-        addresses.append(line.removeprefix("listening on ").strip())
+    try:  # one readiness line per worker, printed once all are ready
+        addresses = [wait_for_line(process, LISTENING, 180.0) for _ in range(count)]
+    except NotReady:
+        process.kill()
+        raise
     return process, addresses
 
 
