@@ -50,6 +50,8 @@ LOW_SPEED = 1.0
 FAR_GAP = 15.0
 """m: ... and the leader farther than this (and the ego slower than the leader)."""
 GAP_TOO_SMALL = "gap_too_small"
+SIMULATOR_DRIVES = "simulator_drives"
+"""The refusal of every command while the simulator drives the ego (not the policy's doing)."""
 """`AppliedAction.lane_change_refused` reason that sets G."""
 
 # --------------------------------------------------------------------------- paper parameters
@@ -361,7 +363,7 @@ class SafeReward:
     Per step without a collision::
 
         r = (v / v_limit) * H(h) * (1 - w_ttc * P(TTC)) * C(jerk)   drive term, in [0, 1]
-            - w_refused [G]  or  - w_lane_change [a lane change started]     <= 0.1
+            - w_refused [refused]  or  - w_lane_change [a lane change started]     <= 0.1
 
     with the comfort gate C(jerk) = 1 - w_jerk * min((jerk / 5.6)^2, 1), and
     ``-collision_penalty`` (20) on a collision or reversing step, so every step lies in
@@ -409,7 +411,8 @@ class SafeReward:
     jerk_weight: float = 0.5
     """Share of the drive term lost at |jerk| >= 5.6 m/s^3 (quadratic below), in [0, 1]."""
     refused_weight: float = 0.1
-    """Cost of a lane change refused for a too small gap (G)."""
+    """Cost of a refused lane change: a too small gap (G), no lane on that side, or one already
+    under way (a policy that asks at every step for a change it cannot get pays for it)."""
     lane_change_weight: float = 0.01
     """Cost of starting a lane change (against dithering)."""
     collision_penalty: float = 20.0
@@ -437,7 +440,8 @@ class SafeReward:
         drive = efficiency * self.headway_score(obs) * (1.0 - self.ttc_weight * self.ttc_cost(obs))
         comfort = 1.0 - self.jerk_weight * min((jerk(prev, obs, dt) / JERK_LIMIT) ** 2, 1.0)
         lane = 0.0
-        if obs.action.lane_change_refused == GAP_TOO_SMALL:
+        refused = obs.action.lane_change_refused
+        if refused and refused != SIMULATOR_DRIVES:
             lane = self.refused_weight
         elif obs.events.lane_change_started:
             lane = self.lane_change_weight

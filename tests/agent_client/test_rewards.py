@@ -335,7 +335,9 @@ def test_safe_jerk_gate_is_smooth_and_proportional() -> None:
 def test_safe_lane_change_costs() -> None:
     base = safe_at(15.0, 2.0)
     assert base - safe_at(15.0, 2.0, refused="gap_too_small") == pytest.approx(0.1)
-    assert base - safe_at(15.0, 2.0, refused="no_lane") == pytest.approx(0.0)
+    assert base - safe_at(15.0, 2.0, refused="no_lane") == pytest.approx(0.1)  # asking in vain
+    assert base - safe_at(15.0, 2.0, refused="in_progress") == pytest.approx(0.1)
+    assert base - safe_at(15.0, 2.0, refused="simulator_drives") == pytest.approx(0.0)
     started = safe_at(15.0, 2.0, events=Events(lane_change_started=True), lane_change=1)
     assert base - started == pytest.approx(0.01)
     custom = SafeReward(refused_weight=0.3)(None, make_obs(speed=15.0, refused="gap_too_small"), DT)
