@@ -44,7 +44,9 @@ def greedy_return(trainer: Trainer, seeds: range) -> float:
 def test_a_short_run_improves_on_its_untrained_start(
     sumo_server: RunningServer, tmp_path: Path
 ) -> None:
-    trainer = Trainer(fast_config(episodes=25, seed=1), sumo_server.address, tmp_path / "run")
+    # 60 episodes: TD3 first goes through a crash phase (its warm-up data are IDM's, so the
+    # critic has not seen where full throttle leads) and leaves it around episode 40-50.
+    trainer = Trainer(fast_config(episodes=60, seed=1), sumo_server.address, tmp_path / "run")
     try:
         before = greedy_return(trainer, range(500, 505))
         trainer.run()
@@ -53,7 +55,7 @@ def test_a_short_run_improves_on_its_untrained_start(
         trainer.close()
     assert after > before + 5.0, (before, after)
     rows = read_rows(tmp_path / "run" / "episodes.csv")
-    assert [int(r["episode"]) for r in rows] == list(range(1, 26))
+    assert [int(r["episode"]) for r in rows] == list(range(1, 61))
     gamma = trainer.config.ddpg.gamma
     assert all(float(r["q_upper_bound"]) == pytest.approx(1.0 / (1.0 - gamma)) for r in rows)
 
