@@ -73,8 +73,9 @@ class DDPGConfig:
     """OU mean-reversion rate."""
     noise_dt: float = 1e-2
     """OU time step."""
-    lane_epsilon: float = 0.1
-    """Probability of a uniformly random lane choice while exploring."""
+    lane_epsilon: float = 0.03
+    """Probability of a uniformly random lane choice while exploring (per decision: at 0.1 s,
+    0.03 asks for a random lane about every 5 s; 0.1 flooded cflc with refused requests)."""
     n_critics: int = 1
     """1 for DDPG, 2 for TD3's clipped double Q."""
     policy_delay: int = 1
