@@ -2,7 +2,7 @@
 # The main job on the embedded default (libsumo, scenario cf), end to end through the bridge:
 #   1. start a SUMO server on a free loopback port (waits for its readiness line),
 #   2. calibrate IDM on the scenario's own human drivers,
-#   3. train the recommended DDPG configuration until three greedy evaluations in a row meet
+#   3. train the recommended learner (TD3) until three greedy evaluations in a row meet
 #      every target (or the episode cap),
 #   4. evaluate the trained policy against the calibrated IDM on the same seeds,
 # and print where the report is. Takes 5-20 minutes on 2 cores; shows progress throughout.
@@ -31,7 +31,7 @@ echo "== sim-server (SUMO, libsumo) is listening on $address"
 echo "== 1/3 calibrating IDM on the human drivers of cf"
 agent-client calibrate-idm --server "$address" --scenario cf --out "$out/idm.json"
 
-echo "== 2/3 training DDPG (recommended configuration) on cf"
+echo "== 2/3 training the recommended learner (TD3) on cf"
 agent-client train --server "$address" --scenario cf --out "$out/train" \
     --episodes "${EPISODES:-100}" --stop-when-converged
 
