@@ -374,8 +374,9 @@ class SafeReward:
       likelihood of Zhu et al. (2020) with mu = ln(h_d), rescaled to peak 1 at h = h_d = 1.2 s,
       sigma = 0.3 below h_d: H(1.0 s) = 0.83, H(0.8 s) = 0.40, H(0.5 s) = 0.01, so tailgating
       earns less than following at the same speed (h_d lies between the evaluation's 1.0 s safety
-      line and IDM's 1.5 s, so the learner follows a little closer than IDM). Above h_d, sigma_far (default inf) keeps H = 1: a far leader
-      scores like an empty road, which has H = 1 - good free driving, never below a crash.
+      line and IDM's 1.5 s, so the learner follows a little closer than IDM). Above h_d,
+      sigma_far (default inf) keeps H = 1: a far leader scores like an empty road, which has
+      H = 1 - good free driving, never below a crash.
     - TTC = gap / (v - v_leader) when closing in; P = 1 - TTC / 4 s below 4 s, growing to 1 as
       TTC -> 0: the share of the drive term lost (a gate, not a subtraction, so the penalty keeps
       the step >= 0; see (a)).
