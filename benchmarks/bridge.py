@@ -42,7 +42,6 @@ import json
 import os
 import platform
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
@@ -62,7 +61,7 @@ from protocol.direct import DEFAULT_SPIN_US  # noqa: E402
 from protocol.messages import Hello, Observation, OptionValue, Reset, Step  # noqa: E402
 from protocol.version import PROTOCOL_VERSION  # noqa: E402
 from sim_server.fake_backend import FakeBackend  # noqa: E402
-from sim_server.readiness import LISTENING, NotReady, wait_for_line  # noqa: E402
+from sim_server.readiness import LISTENING, NotReady, stop_process, wait_for_line  # noqa: E402
 
 VARIANTS = (
     "inproc", "tcp", "ipc", "direct", "traci", "tcp-raw",
@@ -305,15 +304,7 @@ def sim_server(bind: str, cache_dir: Path, extra: list[str]) -> Iterator[str]:
                 log.seek(0)
                 raise RuntimeError(f"sim-server did not become ready: {exc}\n{log.read()}") from exc
         finally:
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-                try:
-                    process.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait(timeout=10)
-            if process.stdout is not None:
-                process.stdout.close()
+            stop_process(process)
 
 
 # --------------------------------------------------------------------------- measuring

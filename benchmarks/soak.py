@@ -37,7 +37,7 @@ from agent_client.connection import Connection, ServerError, ServerTimeout  # no
 from agent_client.idm import IDMDriver  # noqa: E402
 from protocol.messages import Close, Hello, Observation, Reset, Step  # noqa: E402
 from protocol.version import PROTOCOL_VERSION  # noqa: E402
-from sim_server.readiness import LISTENING, NotReady, wait_for_line  # noqa: E402
+from sim_server.readiness import LISTENING, NotReady, stop_process, wait_for_line  # noqa: E402
 
 CRASHING_LEARNER = """
 import sys
@@ -187,12 +187,7 @@ def soak(args: argparse.Namespace) -> Soak:
         connection.close()
     finally:
         result.wall_seconds = round(time.monotonic() - started, 1)
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait(timeout=30)
+        stop_process(server, grace_s=30.0)
     return result
 
 

@@ -1,4 +1,5 @@
-"""Waiting for a child process's readiness line (``listening on ADDRESS``), with a deadline.
+"""Child processes: waiting for a readiness line (``listening on ADDRESS``) with a deadline,
+and stopping them with a grace period.
 
 A child's stdout is read by a daemon thread into a queue, so a wait never blocks past its
 deadline, two lines that arrive in one read are both seen (a selector on a buffered text stream
@@ -9,11 +10,12 @@ supervisor, the tests and the benchmarks: one implementation.
 from __future__ import annotations
 
 import queue
+import signal
 import subprocess
 import threading
 import time
 import weakref
-from typing import IO
+from typing import IO, Any
 
 LISTENING = "listening on "
 """The prefix of the readiness line every ``sim-server`` prints once it accepts requests."""
@@ -79,3 +81,18 @@ def wait_for_line(process: subprocess.Popen[str], prefix: str, timeout_s: float)
         why = f"exited with status {status}" if status is not None else f"not within {timeout_s} s"
         raise NotReady(f"no {prefix.strip()!r} line from {process.args!r}: {why}")
     return found
+
+
+def stop_process(process: subprocess.Popen[Any], grace_s: float = 10.0, ask: bool = True) -> None:
+    """Stop a child: SIGTERM (unless `ask` is False: it is already quitting), wait up to
+    `grace_s`, then SIGKILL; always reaped, its stdout pipe closed."""
+    if process.poll() is None:
+        if ask:
+            process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=grace_s)
+    if process.stdout is not None:
+        process.stdout.close()

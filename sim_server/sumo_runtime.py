@@ -20,6 +20,8 @@ from typing import IO, Any
 
 import libsumo
 
+from sim_server.readiness import stop_process
+
 TRACI_START_TIMEOUT_S = 60.0
 """Longest wait for a sumo / sumo-gui process to accept the TraCI connection."""
 
@@ -164,11 +166,7 @@ class OverTraci:
     def _stop_process(self) -> None:
         process, self._process = self._process, None
         if process is not None:
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(timeout=10)
+            stop_process(process, ask=False)  # closing TraCI made it quit
         if self._log is not None:
             self._log.close()
             self._log = None

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -53,15 +52,7 @@ def sim_server(
             address = wait_for_line(process, "listening on ", READY_TIMEOUT_S)
             yield RunningServer(process, address)
         finally:
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-                try:
-                    process.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait(timeout=10)
-            if process.stdout is not None:
-                process.stdout.close()
+            readiness.stop_process(process)
 
 
 @pytest.fixture(scope="session")
