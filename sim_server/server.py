@@ -270,8 +270,11 @@ class Server:
         except Exception:
             self._release_context()
             raise
-        self._monitor = self._socket.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self._monitor = self._socket.get_monitor_socket(zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED)
         self._owner_fd: int | None = None
+        self._closed_fds: set[int] = set()
+        """Connections reported closed (and not reused since): a request read from one of them
+        was sent before its client died and must not mark the client connected again."""
         self._stop = threading.Event()
 
     def stop(self) -> None:
@@ -290,19 +293,24 @@ class Server:
         try:
             while not self._stop.is_set():
                 ready = {s for s, _ in zmq.zmq_poll(watched, POLL_INTERVAL_MS)}
-                if monitor in ready:  # disconnections first: they came before the data
-                    self._read_events()
-                if socket in ready:
+                if socket in ready:  # data first: a request a client sent before it died...
                     self._answer()
+                if monitor in ready:  # ...comes before the news of its disconnection
+                    self._read_events()
         finally:
             self.close()
 
     def _read_events(self) -> None:
         while self._monitor.poll(0):
             event = parse_monitor_message(self._monitor.recv_multipart())
-            if event["event"] == zmq.EVENT_DISCONNECTED and event["value"] == self._owner_fd:
-                self._owner_fd = None
-                self.session.owner_disconnected()
+            fd = event["value"]
+            if event["event"] == zmq.EVENT_ACCEPTED:
+                self._closed_fds.discard(fd)  # the descriptor now names a new connection
+            elif event["event"] == zmq.EVENT_DISCONNECTED:
+                self._closed_fds.add(fd)
+                if fd == self._owner_fd:
+                    self._owner_fd = None
+                    self.session.owner_disconnected()
 
     def _answer(self) -> None:
         # A REQ peer sends [routing id, request id, b"", payload]; keep the envelope, answer the
@@ -324,7 +332,12 @@ class Server:
         else:
             reply = self.session.handle(parts[0], body[0])
             if self.session.owner == parts[0]:
-                self._owner_fd = _source_fd(head)
+                fd = _source_fd(head)
+                self._read_events()  # up to date: was this descriptor closed, or reused since?
+                if fd is not None and fd in self._closed_fds:
+                    self.session.owner_disconnected()  # its connection is already gone
+                else:
+                    self._owner_fd = fd
         socket.send_multipart([*envelope, reply])
 
     def close(self) -> None:

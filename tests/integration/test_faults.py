@@ -89,6 +89,35 @@ def test_a_killed_learner_frees_the_server_at_once() -> None:
         assert seconds_until_served(server.address, 10.0) < 2.0
 
 
+# A learner killed while its last request is in flight: the server reads that request and the
+# news of the closed connection together, in either order.
+DYING_MID_REQUEST = """
+import os, signal, sys
+from agent_client.connection import Connection
+from protocol.messages import Reset, Step
+connection = Connection(sys.argv[1], timeout_s=30.0)
+connection.hello()
+connection.request(Reset("cf", 1))
+for seq in range(1, 4):
+    connection.request(Step(seq, 0.0))
+connection.send(Step(4, 0.0))
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_a_learner_killed_mid_request_frees_the_server_every_time() -> None:
+    with sim_server("--backend", "fake") as server:
+        for _ in range(20):  # the two orders are a race: try it often
+            subprocess.run(
+                [sys.executable, "-c", DYING_MID_REQUEST, server.address],
+                timeout=60, check=False,
+            )  # fmt: skip
+            assert seconds_until_served(server.address, 10.0) < 3.0
+            with Connection(server.address, timeout_s=10.0) as connection:
+                connection.hello()
+                connection.request(Close())  # free it for the next doomed learner
+
+
 def test_a_busy_learner_keeps_its_session_and_a_frozen_one_loses_it() -> None:
     with (
         sim_server("--backend", "fake", "--heartbeat-timeout", "1") as server,
