@@ -22,7 +22,13 @@ from protocol.transport import DEFAULT_ADDRESS, HEARTBEAT_TIMEOUT_MS, parse_endp
 from sim_server import __version__
 from sim_server.backend import Backend
 from sim_server.direct_server import DirectServer
-from sim_server.server import DEFAULT_SESSION_TIMEOUT_S, Server, Session, format_listening
+from sim_server.server import (
+    DEFAULT_SESSION_TIMEOUT_S,
+    Server,
+    Session,
+    StopFlag,
+    format_listening,
+)
 
 SECRET_KEY_ENV = "SIM_SERVER_SECRET_KEY"
 AUTHORIZED_KEYS_ENV = "SIM_SERVER_AUTHORIZED_KEYS"
@@ -293,7 +299,7 @@ def _spin_us(args: argparse.Namespace) -> float:
     return DEFAULT_SPIN_US if args.spin_us is None else max(0.0, args.spin_us)
 
 
-def stop_with_parent(server: Server | DirectServer, check_interval_s: float = 0.5) -> None:
+def stop_with_parent(server: StopFlag, check_interval_s: float = 0.5) -> None:
     """Stop `server` once this process's parent is gone (the process is re-parented)."""
     parent = os.getppid()
 

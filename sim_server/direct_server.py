@@ -16,13 +16,12 @@ import ipaddress
 import logging
 import selectors
 import socket
-import threading
 import time
 from dataclasses import dataclass, field
 
 from protocol.direct import DEFAULT_SPIN_US, FrameReader, FramingError, frame, spin_wait
 from protocol.transport import Endpoint, parse_endpoint
-from sim_server.server import POLL_INTERVAL_MS, Session
+from sim_server.server import POLL_INTERVAL_MS, Session, StopFlag
 
 log = logging.getLogger("sim_server")
 
@@ -59,7 +58,7 @@ class _Client:
         return self.reader.routing_id
 
 
-class DirectServer:
+class DirectServer(StopFlag):
     """Binds a loopback TCP port and pumps frames through a `Session` until stopped."""
 
     def __init__(
@@ -69,6 +68,7 @@ class DirectServer:
         spin_us: float = DEFAULT_SPIN_US,
         max_connections: int = MAX_CONNECTIONS,
     ) -> None:
+        super().__init__()
         endpoint = parse_endpoint(address)
         if endpoint.scheme != "direct":
             raise ValueError(f"{address}: the direct server binds direct://HOST:PORT")
@@ -92,17 +92,7 @@ class DirectServer:
         self._selector = selectors.DefaultSelector()
         self._selector.register(self._listener, selectors.EVENT_READ, None)
         self._clients: set[_Client] = set()
-        self._stop = threading.Event()
         self._accept_paused_until = 0.0
-
-    def stop(self) -> None:
-        """Ask the loop to return (safe from signal handlers and other threads)."""
-        self._stop.set()
-
-    @property
-    def stopping(self) -> threading.Event:
-        """Set once `stop` was called."""
-        return self._stop
 
     def serve(self) -> None:
         """Serve requests until `stop`; always releases the sockets and the backend."""

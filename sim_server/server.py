@@ -247,7 +247,23 @@ def _merge_options(info: ScenarioInfo, given: dict[str, OptionValue]) -> dict[st
     return merged
 
 
-class Server:
+class StopFlag:
+    """`stop` from signal handlers or other threads; the serving loop watches `stopping`."""
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+
+    def stop(self) -> None:
+        """Ask the loop to return (safe from signal handlers and other threads)."""
+        self._stop.set()
+
+    @property
+    def stopping(self) -> threading.Event:
+        """Set once `stop` was called."""
+        return self._stop
+
+
+class Server(StopFlag):
     """Binds the socket and pumps frames through a `Session` until stopped."""
 
     def __init__(
@@ -257,6 +273,7 @@ class Server:
         credentials: ServerCredentials | None = None,
         heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_MS / 1000,
     ) -> None:
+        super().__init__()
         self.session = session
         self.address = address
         self._context = zmq.Context()
@@ -275,16 +292,6 @@ class Server:
         self._closed_fds: set[int] = set()
         """Connections reported closed (and not reused since): a request read from one of them
         was sent before its client died and must not mark the client connected again."""
-        self._stop = threading.Event()
-
-    def stop(self) -> None:
-        """Ask the loop to return (safe from signal handlers and other threads)."""
-        self._stop.set()
-
-    @property
-    def stopping(self) -> threading.Event:
-        """Set once `stop` was called."""
-        return self._stop
 
     def serve(self) -> None:
         """Serve requests until `stop`; always releases the socket and the backend."""

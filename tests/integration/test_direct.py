@@ -66,6 +66,14 @@ def test_the_sumo_server_conforms_over_direct(scenario_cache: Path) -> None:
         )
 
 
+def owner_with_an_episode(address: str) -> DirectConnection:
+    """A client that said hello and reset `cf`: the simulator's owner."""
+    owner = DirectConnection(address, timeout_s=10.0)
+    owner.hello()
+    owner.request(Reset("cf", 1))
+    return owner
+
+
 def test_a_lost_reply_is_retried_on_a_fresh_connection_without_advancing_twice() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
         channel = DirectConnection(server.address, timeout_s=10.0)
@@ -100,9 +108,7 @@ def hello_when_free(channel: DirectConnection, within_s: float) -> float:
 
 def test_a_second_client_is_busy_and_takes_over_once_the_first_is_gone() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        owner = DirectConnection(server.address, timeout_s=10.0)
-        owner.hello()
-        owner.request(Reset("cf", 1))
+        owner = owner_with_an_episode(server.address)
         other = DirectConnection(server.address, timeout_s=10.0)
         with pytest.raises(ServerError) as refused:
             other.hello()
@@ -114,9 +120,7 @@ def test_a_second_client_is_busy_and_takes_over_once_the_first_is_gone() -> None
 
 def test_a_reconnecting_owner_replaces_its_open_connection_and_keeps_the_simulator() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        owner = DirectConnection(server.address, timeout_s=10.0)
-        owner.hello()
-        owner.request(Reset("cf", 1))
+        owner = owner_with_an_episode(server.address)
         step_1 = owner.request(Step(1, 0.5))
         old_socket = owner._sock
         assert old_socket is not None
@@ -136,9 +140,7 @@ def test_a_reconnecting_owner_replaces_its_open_connection_and_keeps_the_simulat
 
 def test_a_closing_stranger_does_not_free_the_owners_simulator() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        owner = DirectConnection(server.address, timeout_s=10.0)
-        owner.hello()
-        owner.request(Reset("cf", 1))
+        owner = owner_with_an_episode(server.address)
         with (
             DirectConnection(server.address, timeout_s=10.0) as stranger,
             pytest.raises(ServerError),
@@ -165,9 +167,7 @@ def read_until_closed(sock: socket.socket) -> int:
 
 def test_a_client_that_never_reads_cannot_stall_the_owner() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        owner = DirectConnection(server.address, timeout_s=10.0)
-        owner.hello()
-        owner.request(Reset("cf", 1))
+        owner = owner_with_an_episode(server.address)
         host, port = server.address.removeprefix("direct://").rsplit(":", 1)
         flood = frame(encode(Hello(PROTOCOL_VERSION, "flood"))) * 3000  # ~3000 replies queued
         with socket.create_connection((host, int(port)), timeout=5.0) as greedy:
@@ -200,9 +200,7 @@ def test_unread_replies_beyond_the_cap_close_that_connection() -> None:
 
 def test_silent_connections_cannot_lock_the_owner_out() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        owner = DirectConnection(server.address, timeout_s=10.0)
-        owner.hello()
-        owner.request(Reset("cf", 1))
+        owner = owner_with_an_episode(server.address)
         host, port = server.address.removeprefix("direct://").rsplit(":", 1)
         idle = [socket.create_connection((host, int(port)), timeout=5.0) for _ in range(80)]
         try:
