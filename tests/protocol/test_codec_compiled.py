@@ -1,23 +1,26 @@
-"""The compiled encoders and decoders against the generic reference they replaced.
+"""The encoder, the compiled decoders and the fast path against the generic reference.
 
 `encode` must write the same bytes as the generic dataclass walk (`codec._wire_map`), and the
 compiled decoders must accept, convert and refuse exactly what the generic converter did, with
 the same error code and message: a reference decoder written the generic way is the oracle here.
+The fast path (msgspec) must give every frame the verdict of the precise path.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
 import types
 import typing
+from collections.abc import Iterator
 from enum import IntEnum
 from typing import Any
 
 import msgpack
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from protocol import codec
@@ -27,14 +30,20 @@ from protocol.messages import (
     REPLY_TYPES,
     REQUEST_TYPES,
     AppliedAction,
+    Bye,
+    Close,
     Ego,
+    Error,
     Events,
+    Hello,
     LaneChange,
     LeaderTrip,
     Neighbour,
     Neighbours,
     Observation,
+    Reset,
     Step,
+    Welcome,
 )
 from tests.protocol.test_codec import REPLIES, REQUESTS
 
@@ -280,3 +289,147 @@ def test_a_request_decodes_through_the_compiled_converter() -> None:
     frame = msgpack.packb({"type": "step", "seq": 2, "acceleration": -1, "extra": [1]})
     step = decode_request(frame)
     assert step == Step(2, -1.0, 0) and type(step.acceleration) is float  # type: ignore[union-attr]
+
+
+# --------------------------------------------------------------------------- the fast path
+
+
+@contextlib.contextmanager
+def precise_path_only() -> Iterator[None]:
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(codec, "_fast_decoder", lambda cls: None)
+        yield
+
+
+def frame_verdict(decode: Any, frame: bytes) -> tuple[str, Any]:
+    try:
+        value = decode(frame)
+    except ProtocolError as exc:
+        return "error", (exc.code, exc.message)
+    return "ok", (value, repr(value))
+
+
+def packed(raw: Any) -> bytes:
+    """The frame a peer would send for `raw` (ints beyond msgpack's range cannot be sent)."""
+    try:
+        return msgpack.packb(raw)
+    except OverflowError:
+        assume(False)
+        raise
+
+
+def both_verdicts(decode: Any, frame: bytes) -> tuple[tuple[str, Any], tuple[str, Any]]:
+    fast = frame_verdict(decode, frame)
+    with precise_path_only():
+        precise = frame_verdict(decode, frame)
+    return fast, precise
+
+
+def test_the_per_step_messages_have_a_fast_path_and_the_others_do_not() -> None:
+    assert {cls for cls in REQUEST_TYPES + REPLY_TYPES if codec._fast_decoder(cls)} == {
+        Step, Close, Observation, Error, Bye
+    }  # fmt: skip
+    assert codec._fast_decoder(Hello) is None and codec._fast_decoder(Welcome) is None
+    assert codec._fast_decoder(Reset) is None
+
+
+def test_a_valid_observation_never_reaches_msgpack(monkeypatch: pytest.MonkeyPatch) -> None:
+    frame = encode(REPLIES[1])
+
+    def refuse(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("the precise path was taken")
+
+    monkeypatch.setattr(codec.msgpack, "unpackb", refuse)
+    assert decode_reply(frame) == REPLIES[1]
+    assert decode_request(encode(Step(4, 1.5, 1))) == Step(4, 1.5, 1)
+
+
+@settings(max_examples=400, deadline=None)
+@given(data=st.data())
+def test_hostile_observation_frames_get_the_precise_verdict(data: st.DataObject) -> None:
+    raw = data.draw(mutated(codec._wire_map(data.draw(observations()))))
+    fast, precise = both_verdicts(decode_reply, packed(raw))
+    assert fast == precise
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_hostile_request_frames_get_the_precise_verdict(data: st.DataObject) -> None:
+    wire = codec._wire_map(data.draw(st.sampled_from(REQUESTS)))
+    raw = data.draw(mutated(wire)) if len(wire) > 1 else wire
+    fast, precise = both_verdicts(decode_request, packed(raw))
+    assert fast == precise
+
+
+@pytest.mark.parametrize("path", leaf_paths(FULL_OBSERVATION), ids=".".join)
+def test_every_field_of_an_observation_frame_gets_the_precise_verdict(
+    path: tuple[str, ...],
+) -> None:
+    for odd in [*ODD, "missing"]:
+        raw = msgpack.unpackb(msgpack.packb(FULL_OBSERVATION), raw=False)
+        parent = raw
+        for key in path[:-1]:
+            parent = parent[key]
+        if odd == "missing":
+            del parent[path[-1]]
+        else:
+            parent[path[-1]] = odd
+        if odd == -(2**63) - 1:
+            continue  # no peer can send this: below msgpack's int64
+        fast, precise = both_verdicts(decode_reply, msgpack.packb(raw))
+        assert fast == precise, odd
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [
+        encode(Step(1, 0.5, 0)) + b"\x00",  # trailing bytes
+        encode(Step(1, 0.5, 0))[:-1],  # truncated
+        encode(Step(1, 0.5, 0))[:-1] + b"\x91" * 100_000 + b"\x00",  # deep nesting
+        msgpack.packb({"type": "step", "seq": 1, "acceleration": 0.5, 7: 1}),  # an int key
+        msgpack.packb({"type": "step", b"seq": 1, "acceleration": 0.5}),  # a bytes key
+        b"\x84"
+        + b"".join(
+            map(msgpack.packb, ["type", "step", "seq", 1, "acceleration", 0.5, "seq", 2])
+        ),  # a key twice
+        msgpack.packb({"type": "step", "seq": 2**64 - 1, "acceleration": 0.5}),
+        msgpack.packb({"type": "step", "seq": 1, "acceleration": 2**64 - 1}),
+        msgpack.packb({"type": "close", "x": b"\x00"}),
+        msgpack.packb({"type": "error", "code": "c" * 4097, "message": ""}),
+        msgpack.packb({"type": "error", "code": "c" * 3000, "message": "m" * 3000}),
+        msgpack.packb({"type": "step", "seq": 1, "acceleration": math.nan}),
+    ],
+)
+def test_odd_frames_get_the_precise_verdict(frame: bytes) -> None:
+    fast, precise = both_verdicts(decode_request, frame)
+    assert fast == precise
+    fast, precise = both_verdicts(decode_reply, frame)
+    assert fast == precise
+
+
+def test_finite_numbers_whose_sum_overflows_are_accepted() -> None:
+    obs = dataclasses.replace(REPLIES[1], time=1.7e308, ego=dataclasses.replace(
+        REPLIES[1].ego, speed=1.7e308
+    ))  # fmt: skip
+    assert decode_reply(encode(obs)) == obs
+
+
+def test_a_non_finite_observation_field_is_named_in_the_error() -> None:
+    obs = dataclasses.replace(REPLIES[1], ego=dataclasses.replace(REPLIES[1].ego, speed=math.inf))
+    with pytest.raises(ProtocolError, match=r"observation\.ego\.speed") as caught:
+        decode_reply(encode(obs))
+    assert caught.value.code is codec.ErrorCode.INVALID_NUMBER
+
+
+@pytest.mark.parametrize("count", [14, 15, 16, 70])
+def test_messages_of_many_fields_encode_like_the_generic_walk(
+    count: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The type key makes one entry more: a fixmap of 15 becomes a map16."""
+    cls = dataclasses.make_dataclass(
+        "Wide", [(f"f{i}", int) for i in range(count)], frozen=True, slots=True
+    )
+    cls.TYPE = "wide"  # type: ignore[attr-defined]
+    monkeypatch.setitem(codec._TYPE_ENTRIES, cls, msgpack.packb("type") + msgpack.packb("wide"))
+    message = cls(*range(count))
+    assert encode(message) == msgpack.packb(codec._wire_map(message), use_bin_type=True)
