@@ -10,6 +10,7 @@ from pathlib import Path
 
 from agent_client import __version__
 from agent_client.connection import BridgeError
+from agent_client.features import FeatureMismatch
 from protocol.messages import OptionValue
 from protocol.security import CLIENT_SECRET_ENV, SERVER_KEY_ENV, ClientCredentials
 from protocol.transport import DEFAULT_ADDRESS
@@ -187,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     try:
         return int(args.run(args))
-    except BridgeError as exc:
+    except (BridgeError, FeatureMismatch) as exc:
         print(f"agent-client: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -469,6 +469,8 @@ class Checker:
                 problems.append(f"absent {slot} is not gap=sensor_range, lateral=0, speed=0, id=''")
         if not 0 <= obs.ego.lane < obs.ego.lane_count:
             problems.append(f"ego lane {obs.ego.lane} outside 0..{obs.ego.lane_count - 1}")
+        if obs.ego.changing_lane not in (-1, 0, 1):
+            problems.append(f"ego changing_lane {obs.ego.changing_lane} is not -1, 0 or 1")
         if problems:
             raise CheckFailed("; ".join(problems))
         total = sum(len(s.options) for s in self.welcome.scenarios)

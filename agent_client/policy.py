@@ -13,7 +13,7 @@ from typing import Any
 
 from agent_client.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.ddpg import Agent, Policy
-from agent_client.features import FeatureMap
+from agent_client.features import FeatureMap, FeatureMismatch
 from protocol.messages import ActionSchema, Observation
 
 LANE_COMMANDS = (0, 1, -1)
@@ -70,11 +70,14 @@ def load_policy_driver(path: Path) -> PolicyDriver:
     """Read a policy file safely and wrap it as a driver."""
     state = load_checkpoint(path)
     low, high = state["acceleration_bounds"]
-    return PolicyDriver(
-        Policy.from_state_dict(state["policy"]),
-        FeatureMap(state["features"]),
-        ActionScale(low, high),
-    )
+    policy, features = Policy.from_state_dict(state["policy"]), FeatureMap(state["features"])
+    if policy.obs_dim != features.dim:
+        raise FeatureMismatch(
+            f"{path}: the policy takes {policy.obs_dim} features, but feature set "
+            f"{features.name!r} now has {features.dim} (the file was written by an older "
+            "version): train it again"
+        )
+    return PolicyDriver(policy, features, ActionScale(low, high))
 
 
 def training_settings(policy: str) -> tuple[str | None, dict[str, Any]]:

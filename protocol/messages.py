@@ -140,7 +140,12 @@ class Bye:
 
 @dataclass(frozen=True, slots=True)
 class Ego:
-    """State of the controlled vehicle after the step."""
+    """State of the controlled vehicle after the step.
+
+    `changing_lane` is the direction of the lane change under way (1 left, -1 right, 0 none),
+    from the step that started it to the step that completed it: a new lane-change command is
+    refused with ``in_progress`` while it is not 0 (since protocol 1.1; 0 from 1.0 servers).
+    """
 
     speed: float
     acceleration: float
@@ -148,6 +153,7 @@ class Ego:
     lane_count: int
     position: float
     speed_limit: float
+    changing_lane: int = 0
 
 
 @dataclass(frozen=True, slots=True)

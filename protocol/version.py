@@ -3,6 +3,7 @@
 Revision history:
     1.0  First release: hello/welcome handshake, reset/step/close, named observations
          with the six neighbours of the paper's Fig. 11, events and applied actions.
+    1.1  `ego.changing_lane`: the direction of the lane change under way (0 from 1.0 servers).
 
 Compatibility rule: peers with the same major version interoperate. A minor version only adds
 optional fields or message types; receivers ignore map keys they do not know.
@@ -10,7 +11,7 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 0)
+PROTOCOL_VERSION: tuple[int, int] = (1, 1)
 
 
 def format_version(version: tuple[int, int]) -> str:

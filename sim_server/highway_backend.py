@@ -183,6 +183,8 @@ class _Episode:
     leader: Any = None
     leader_arrival: float | None = None
     lane_change_target: int | None = None
+    changing_lane: int = 0
+    """Direction of the lane change under way (`Ego.changing_lane`)."""
     stopped_since: float | None = None
     collided: Any = None
     done: bool = False
@@ -312,7 +314,7 @@ class HighwayBackend(Backend):
             _from, _to, index = ego.lane_index
             target = index - lane_change  # protocol +1 (left) is highway-env index - 1
             ego.target_lane_index = (_from, _to, target)
-            episode.lane_change_target = target
+            episode.lane_change_target, episode.changing_lane = target, lane_change
         low, high = self.action_schema.acceleration_min, self.action_schema.acceleration_max
         limit = episode.scenario.speed_limit
         applied_total, limited_by = 0.0, ""
@@ -339,7 +341,7 @@ class HighwayBackend(Backend):
                 end_of_road = True
                 break
             if episode.lane_change_target is not None and self._lane_change_done(episode):
-                episode.lane_change_target = None
+                episode.lane_change_target, episode.changing_lane = None, 0
                 completed = True
         action = AppliedAction(
             requested_acceleration=acceleration,
@@ -511,6 +513,7 @@ class HighwayBackend(Backend):
                 lane_count=lanes,
                 position=min(float(s + ego.LENGTH / 2), episode.scenario.length),
                 speed_limit=float(lane.speed_limit),
+                changing_lane=episode.changing_lane,
             ),
             neighbours=Neighbours(**slots),
             events=events,

@@ -86,6 +86,8 @@ class _Episode:
     one_way: bool = False
     """A built-in road: no lane beyond its edge's outer lanes (no opposite-direction lanes)."""
     lane_change_target: int | None = None
+    changing_lane: int = 0
+    """Direction of the lane change under way (`Ego.changing_lane`)."""
     stopped_since: float | None = None
     done: bool = False
     last: Observation | None = None
@@ -285,7 +287,7 @@ class SumoBackend(Backend):
         if lane_change and not refused:
             target = self._lane(episode)[0] + lane_change
             api.vehicle.changeLane(EGO_ID, target, 2.0)
-            episode.lane_change_target = target
+            episode.lane_change_target, episode.changing_lane = target, lane_change
             started = True
         low = self.action_schema.acceleration_min
         high = self.action_schema.acceleration_max
@@ -322,7 +324,7 @@ class SumoBackend(Backend):
                 end_of_road = True
                 break
             if episode.lane_change_target is not None and _lane_change_done(api, episode):
-                episode.lane_change_target = None
+                episode.lane_change_target, episode.changing_lane = None, 0
                 completed = True
         action = AppliedAction(
             requested_acceleration=request,
@@ -453,6 +455,7 @@ class SumoBackend(Backend):
             lane_count=lane_count,
             position=episode.entry_offset + vehicle.getDistance(EGO_ID),
             speed_limit=self._api.lane.getMaxSpeed(lane_id),
+            changing_lane=episode.changing_lane,
         )
         x, y = vehicle.getPosition(EGO_ID)
         heading = math.radians(vehicle.getAngle(EGO_ID))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from agent_client.ddpg import Agent
-from agent_client.features import FeatureMap
+from agent_client.features import FeatureMap, FeatureMismatch
 from agent_client.policy import ActionScale, load_policy_driver, save_policy, training_settings
 from protocol.messages import ActionSchema
 from tests.protocol.test_codec import make_observation
@@ -35,6 +35,13 @@ def test_a_saved_policy_drives_like_the_agent(tmp_path: Path) -> None:
     assert acceleration == pytest.approx(scale.to_env(u))
     assert lane_change == (0, 1, -1)[lane]
     assert np.isfinite(acceleration)
+
+
+def test_a_policy_of_an_older_feature_set_is_refused_with_the_reason(tmp_path: Path) -> None:
+    agent = Agent(FeatureMap("lc").dim - 1, 3, seed=3)  # as "lc" was before changing_lane
+    save_policy(tmp_path / "policy.pt", agent, "lc", ActionScale(-6.0, 3.0))
+    with pytest.raises(FeatureMismatch, match=r"takes 23 features.*'lc' now has 24"):
+        load_policy_driver(tmp_path / "policy.pt")
 
 
 def test_training_settings_come_from_the_run_folder(tmp_path: Path) -> None:

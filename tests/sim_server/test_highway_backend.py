@@ -123,15 +123,18 @@ def test_lane_changes_follow_the_protocols_lane_numbering(backend: HighwayBacken
     direction = 1 if first.ego.lane < 2 else -1
     start = backend.step(1, 0.0, direction)
     assert start.events.lane_change_started and start.action.lane_change == direction
+    assert start.ego.changing_lane == direction
     busy = backend.step(2, 0.0, direction)
     assert busy.events.lane_change_refused and busy.action.lane_change_refused == "in_progress"
+    assert busy.ego.changing_lane == direction
     seq, obs, moved = 2, busy, []
     while not obs.events.lane_change_completed:
         seq += 1
         obs = backend.step(seq, 0.0, 0)
         moved.append(obs)
         assert seq < 60, "the lane change did not complete within 6 s"
-    assert obs.ego.lane == first.ego.lane + direction
+    assert obs.ego.lane == first.ego.lane + direction and obs.ego.changing_lane == 0
+    assert all(o.ego.changing_lane == direction for o in moved[:-1])
     assert 1.0 <= obs.time - start.time + 0.1 <= 3.0  # SUMO's lane change takes 2 s
     # On to the edge of the road, where the next change is refused with no_lane.
     for _ in range(100):

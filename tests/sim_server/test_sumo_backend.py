@@ -163,6 +163,27 @@ def test_lane_change_takes_two_seconds_and_completes(backend: SumoBackend) -> No
         or done.ego.lane == first.ego.lane + direction
     )
     assert done.time - started[0].time == pytest.approx(2.0, abs=0.25)
+    # The lane change under way is in the observation from its start to its completion.
+    during = stream[stream.index(started[0]) : stream.index(done)]
+    assert [o.ego.changing_lane for o in during] == [direction] * len(during)
+    assert done.ego.changing_lane == 0
+    assert all(o.ego.changing_lane == 0 for o in stream[: stream.index(started[0])])
+
+
+def test_a_lane_change_is_refused_in_progress_exactly_while_one_is_under_way(
+    backend: SumoBackend,
+) -> None:
+    obs = backend.reset("cflc", 7, options(backend, "cflc"))
+    direction = 1 if obs.ego.lane < 2 else -1
+    verdicts = []  # (a change under way before the step, the step's command refused in_progress)
+    for seq in range(1, 120):
+        before = obs.ego.changing_lane
+        obs = backend.step(seq, 0.0, direction)
+        verdicts.append((before != 0, obs.action.lane_change_refused == "in_progress"))
+        if obs.terminated or obs.truncated:
+            break
+    assert all(under_way == refused for under_way, refused in verdicts), verdicts
+    assert sum(refused for _, refused in verdicts) >= 10  # a change lasts 2 s: 20 steps
 
 
 def test_lane_change_requests_are_refused_with_a_reason(backend: SumoBackend) -> None:
