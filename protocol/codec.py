@@ -5,24 +5,26 @@ type and that every number is finite, and raises `ProtocolError` with a distinct
 each kind of fault. Map keys the receiver does not know are ignored (forward compatibility within
 a major version); missing keys fall back to the field's default or are an error.
 
-Frames are written by msgspec, which packs a message dataclass as the map of its fields; `encode`
-puts the ``type`` key in front. `_wire_map` is the reference the bytes are tested against.
+Two paths, one verdict:
 
-Frames are read on two paths that give one verdict:
+* **The precise path**, for every message. Writing: the generic dataclass walk (`_wire_map`)
+  and msgpack. Reading: msgpack, then a converter compiled once per class from its dataclass
+  fields and type hints (as `dataclasses` compiles ``__init__``), which checks each field with
+  an inline test of its exact msgpack type and hands anything that fails it to the field's
+  converter, which converts (an integer where a float is expected) or raises the field's error.
+* **The fast path**, for the fixed-shape messages: those made of scalars and nested messages of
+  scalars, which are the ones sent at every step (`Step`, `Observation`; also `Close`, `Bye`,
+  `Error`). msgspec packs them, and reads them straight into the dataclass, checking structure
+  and types. A compiled check then adds what msgspec does not check (finite numbers, int64,
+  string lengths). This takes ~5 µs for an observation instead of ~16 (README, "Bridge
+  performance").
 
-* the per-step messages (`Step`, `Observation`: messages of scalars and nested messages of
-  scalars) are decoded by msgspec straight into the dataclass, which checks the structure and
-  the types, then by a compiled check that their numbers are finite and in range and their
-  strings short. This takes a few microseconds instead of ~20 (README, "Bridge performance");
-* everything else, and any frame the fast path does not accept, goes through the precise path:
-  msgpack, then a converter compiled once per class from its dataclass fields and type hints
-  (as `dataclasses` compiles ``__init__``), which checks each field with an inline test of its
-  exact msgpack type and hands anything that fails it to the field's converter, which converts
-  (an integer where a float is expected) or raises the field's error.
-
-The fast path only ever accepts what the precise path accepts, with the same value; what it
-does not accept gets the precise path's error. It is taken for frames that start as `encode`
-writes them, with ``type`` as the first key (a frame naming its type twice is read by its first).
+The fast path accepts a frame only if it is the frame `encode` writes for the message read from
+it. The precise path decodes that frame to the same message (the tests check both directions),
+so the fast path cannot accept what the precise path would refuse. This also covers what msgspec
+reads differently: it skips the values of keys it does not know unread, and it reads the first
+of two ``type`` keys. Any other frame, e.g. from another implementation's encoder, takes the
+precise path and gets its verdict.
 """
 
 from __future__ import annotations
@@ -57,21 +59,26 @@ _REPLIES = {cls.TYPE: cls for cls in REPLY_TYPES}
 
 def encode(message: Message) -> bytes:
     """Serialise a message to one msgpack frame (a map whose ``type`` key names the message)."""
+    cls: type = type(message)
+    if _range_check(cls) is None:  # not of a fixed shape: hello, reset, welcome
+        return msgpack.packb(_wire_map(message), use_bin_type=True)
     fields = _ENCODER.encode(message)  # the map of the fields, in declaration order
-    entry = _TYPE_ENTRIES[type(message)]
+    entry = _TYPE_ENTRIES[cls]
     head = fields[0]
     if head < 0x8F:  # a fixmap (0x80-0x8e): one more entry fits in the same byte
         return bytes((head + 1,)) + entry + fields[1:]
     if head == 0x8F:
         return b"\xde\x00\x10" + entry + fields[1:]
-    (count,) = _MAP16.unpack_from(fields, 1)  # 0xde: a map16
+    assert head == 0xDE, "a message of more than 65534 fields"
+    (count,) = _MAP16.unpack_from(fields, 1)
     return b"\xde" + _MAP16.pack(count + 1) + entry + fields[3:]
 
 
 def _encode_other(value: Any) -> Any:
-    """What msgspec does not pack itself: subclasses of float (numpy's float64)."""
-    if isinstance(value, float):
-        return float(value)
+    """What msgspec does not pack itself: subclasses of float (numpy's float64), int, str."""
+    for base in (float, int, str):
+        if isinstance(value, base):
+            return base(value)
     raise TypeError(f"cannot encode {type(value).__name__} on the wire")
 
 
@@ -110,7 +117,7 @@ def _decode(frame: bytes, allowed: dict[str, type], max_frame_bytes: int) -> Mes
         except (msgspec.MsgspecError, RecursionError):
             pass  # the precise path says what is wrong
         else:
-            if in_range(message):
+            if in_range(message) and encode(message) == frame:
                 return typing.cast(Message, message)
     try:
         raw = msgpack.unpackb(frame, raw=False, strict_map_key=True, use_list=True)
@@ -134,14 +141,14 @@ def _decode(frame: bytes, allowed: dict[str, type], max_frame_bytes: int) -> Mes
     return typing.cast(Message, _converter(cls)(raw, kind))
 
 
+# --------------------------------------------------------------------------- to the wire
+
+
 def _wire_map(message: Any) -> dict[str, Any]:
-    """The reference encoding of a message (generic, slow): what `encode` must produce."""
+    """The precise path's wire map of a message (generic, slow): the bytes `encode` must write."""
     wire = {"type": message.TYPE}
     wire.update(_to_wire(message))
     return wire
-
-
-# --------------------------------------------------------------------------- to the wire
 
 
 def _to_wire(value: Any) -> Any:
@@ -441,8 +448,8 @@ def _fast_decoder(cls: type) -> tuple[msgspec.msgpack.Decoder[Any], Callable[[An
     """msgspec's decoder of `cls` and the check of what it does not check, or None.
 
     Only messages made of scalars (possibly optional) and nested messages of the same kind have
-    a fast path: msgspec checks their structure and types as the precise path would, except
-    that floats may be infinite or NaN, integers beyond int64 and strings of any length.
+    a fast path. msgspec checks the types of the fields it reads, but lets floats be infinite
+    or NaN, integers go beyond int64 and strings be of any length: the check is for those.
     """
     check = _range_check(cls)
     return None if check is None else (msgspec.msgpack.Decoder(cls), check)

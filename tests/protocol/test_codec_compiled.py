@@ -19,6 +19,7 @@ from enum import IntEnum
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
@@ -157,7 +158,7 @@ def observations(draw: st.DrawFn) -> Observation:
 
 ODD = (
     [None, True, False, 0, 1, -1, 2**63, -(2**63) - 1, 2**64 - 1, 1.5, -0.0, math.nan, math.inf,
-     -math.inf, "", "x", "y" * 5000, [], [1, 2], {}, {"a": 1}, b"bytes"]
+     -math.inf, "", "x", "y" * 5000, [], [1, 2], {}, {"a": 1}, {1: 2}, b"bytes"]
 )  # fmt: skip
 ODD_VALUES = st.sampled_from(ODD).map(copy.deepcopy)  # later mutations must not reach ODD
 
@@ -208,7 +209,7 @@ def test_an_int_enum_goes_on_the_wire_as_a_plain_int() -> None:
     assert encode(Step(1, 0.5, LaneChange.LEFT)) == encode(Step(1, 0.5, 1))
 
 
-def test_a_value_of_an_unexpected_class_still_goes_through_the_generic_walk() -> None:
+def test_values_of_subclasses_encode_as_their_base_type() -> None:
     class Lane(IntEnum):
         LEFT = 2
 
@@ -217,8 +218,20 @@ def test_a_value_of_an_unexpected_class_still_goes_through_the_generic_walk() ->
         Events(), AppliedAction(0.0, 0, 0.0, 0),
     )  # fmt: skip
     assert encode(obs) == msgpack.packb(codec._wire_map(obs), use_bin_type=True)
+
+    class Seq(int):
+        pass
+
+    class Name(str):
+        pass
+
+    step, error = Step(Seq(3), np.float64(0.5), 0), Error(Name("busy"), "m")  # type: ignore[arg-type]
+    assert encode(step) == msgpack.packb(codec._wire_map(step), use_bin_type=True)
+    assert encode(error) == msgpack.packb(codec._wire_map(error), use_bin_type=True)
     with pytest.raises(TypeError):
         encode(Step(1, object(), 0))  # type: ignore[arg-type]
+    with pytest.raises(TypeError):  # an option msgpack has no type for is refused before sending
+        encode(Reset("cf", 1, {"blob": b"x"}))  # type: ignore[dict-item]
 
 
 # --------------------------------------------------------------------------- decoding
@@ -398,6 +411,20 @@ def test_every_field_of_an_observation_frame_gets_the_precise_verdict(
         msgpack.packb({"type": "error", "code": "c" * 4097, "message": ""}),
         msgpack.packb({"type": "error", "code": "c" * 3000, "message": "m" * 3000}),
         msgpack.packb({"type": "step", "seq": 1, "acceleration": math.nan}),
+        # What msgspec reads differently: the first of two type keys, and the values of
+        # unknown keys, which it skips unread (malformed ones are a decode error).
+        b"\x84"
+        + b"".join(
+            map(msgpack.packb, ["type", "step", "seq", 1, "acceleration", 0.5, "type", "close"])
+        ),
+        b"\x82" + b"".join(map(msgpack.packb, ["type", "close", "type", "step"])),
+        msgpack.packb({"type": "step", "seq": 1, "acceleration": 0.5, "x": {1: 2}}),
+        msgpack.packb({"type": "step", "seq": 1, "acceleration": 0.5, "x": "?"})[:-2] + b"\xa1\xff",
+        msgpack.packb({"type": "step", "seq": 1, "acceleration": 0.5, "x": 0})[:-3]
+        + b"\xa1\xff\x00",
+        msgpack.packb({"type": "step", "seq": 1, "acceleration": 0.5, "x": 0})[:-1]
+        + b"\xd4\xff\x00",
+        msgpack.packb({"type": "bye", "x": {1: 1}}),
     ],
 )
 def test_odd_frames_get_the_precise_verdict(frame: bytes) -> None:
@@ -405,6 +432,17 @@ def test_odd_frames_get_the_precise_verdict(frame: bytes) -> None:
     assert fast == precise
     fast, precise = both_verdicts(decode_reply, frame)
     assert fast == precise
+
+
+def test_a_frame_from_another_encoder_gets_the_same_message() -> None:
+    """Keys in another order, floats as float32: not what `encode` writes, so the precise path."""
+    wire = codec._wire_map(REPLIES[1])
+    reordered = dict(reversed(list(wire.items())))
+    packer = msgpack.Packer(use_single_float=True)
+    for frame in (msgpack.packb(reordered), packer.pack(wire)):
+        fast, precise = both_verdicts(decode_reply, frame)
+        assert fast == precise and fast[0] == "ok"
+    assert decode_reply(msgpack.packb(reordered)) == REPLIES[1]
 
 
 def test_finite_numbers_whose_sum_overflows_are_accepted() -> None:
