@@ -6,10 +6,8 @@ scaling inputs is a learning decision, so it lives here. Two sets:
 * ``cf`` — the paper's car-following state (§4.3): speed, acceleration, gap and speed difference
   to the leader, plus the time headway and leader presence (a missing leader is a flag, not a
   huge gap).
-* ``lc`` — ``cf`` plus the other five neighbours of Fig. 11 (presence, gap, relative speed),
-  whether there is a lane to the left and to the right, and the direction of the lane change
-  under way (without it a policy cannot tell when another command would be refused
-  ``in_progress``, and keeps asking).
+* ``lc`` — ``cf`` plus the other five neighbours of Fig. 11 (presence, gap, relative speed) and
+  whether there is a lane to the left and to the right.
 
 All features are O(1): speeds by the speed limit, gaps by 100 m (capped at 2), speed differences
 by 10 m/s, headways by 5 s (capped at 1).
@@ -56,14 +54,13 @@ def car_following(obs: Observation) -> list[float]:
 
 
 def lane_changing(obs: Observation) -> list[float]:
-    """Car-following features, the other five neighbours, the lanes available, the change under
-    way."""
+    """Car-following features, the other five neighbours and the lanes available."""
     features = car_following(obs)
     for slot in _OTHER_SLOTS:
         features += _neighbour(getattr(obs.neighbours, slot), obs.ego.speed)
     ego = obs.ego
-    lanes = [float(ego.lane < ego.lane_count - 1), float(ego.lane > 0)]
-    return features + lanes + [float(ego.changing_lane)]
+    features += [float(ego.lane < ego.lane_count - 1), float(ego.lane > 0)]
+    return features
 
 
 FEATURE_SETS: dict[str, Callable[[Observation], list[float]]] = {

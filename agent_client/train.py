@@ -29,7 +29,7 @@ from agent_client.config import TrainConfig
 from agent_client.connection import ServerError, ServerUnavailable
 from agent_client.ddpg import Agent
 from agent_client.drive import aggregate, run_episode
-from agent_client.features import FeatureMap
+from agent_client.features import FeatureMap, FeatureMismatch
 from agent_client.idm import IDMDriver
 from agent_client.metrics import EpisodeRecorder, EpisodeSummary
 from agent_client.policy import LANE_COMMANDS, ActionScale, PolicyDriver, save_policy
@@ -438,6 +438,13 @@ class Trainer:
 
     def _restore(self) -> None:
         state = load_checkpoint(self.out / "checkpoint.pt")
+        saved_dim = state["agent"].get("obs_dim")
+        if saved_dim != self.features.dim:
+            raise FeatureMismatch(
+                f"{self.out}: the run's networks take {saved_dim} features, but feature set "
+                f"{self.features.name!r} now has {self.features.dim} (the run was made by an "
+                "older version): start a new run"
+            )
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])
         self.rng.bit_generator.state = state["rng"]

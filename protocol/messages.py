@@ -196,6 +196,8 @@ class Events:
     lane_change_completed: bool = False
     lane_change_refused: bool = False
     teleported: bool = False
+    lane_change_aborted: bool = False
+    """A started lane change the simulator gave up (since protocol 1.1)."""
 
 
 @dataclass(frozen=True, slots=True)

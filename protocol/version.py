@@ -3,7 +3,8 @@
 Revision history:
     1.0  First release: hello/welcome handshake, reset/step/close, named observations
          with the six neighbours of the paper's Fig. 11, events and applied actions.
-    1.1  `ego.changing_lane`: the direction of the lane change under way (0 from 1.0 servers).
+    1.1  `ego.changing_lane`: the direction of the lane change under way (0 from 1.0 servers);
+         `events.lane_change_aborted`: a started lane change the simulator gave up.
 
 Compatibility rule: peers with the same major version interoperate. A minor version only adds
 optional fields or message types; receivers ignore map keys they do not know.

@@ -86,7 +86,7 @@ from protocol.messages import (
     OptionValue,
     ScenarioInfo,
 )
-from sim_server.backend import Backend, BackendError
+from sim_server.backend import Backend, BackendError, LaneChange
 from sim_server.scenarios import COMMON_OPTIONS, check_options
 
 SIMULATION_FREQUENCY = 10
@@ -182,9 +182,7 @@ class _Episode:
     simulator_drives: bool = False
     leader: Any = None
     leader_arrival: float | None = None
-    lane_change_target: int | None = None
-    changing_lane: int = 0
-    """Direction of the lane change under way (`Ego.changing_lane`)."""
+    lane_change: LaneChange | None = None
     stopped_since: float | None = None
     collided: Any = None
     done: bool = False
@@ -314,11 +312,11 @@ class HighwayBackend(Backend):
             _from, _to, index = ego.lane_index
             target = index - lane_change  # protocol +1 (left) is highway-env index - 1
             ego.target_lane_index = (_from, _to, target)
-            episode.lane_change_target, episode.changing_lane = target, lane_change
+            episode.lane_change = LaneChange(target, lane_change, episode.time)
         low, high = self.action_schema.acceleration_min, self.action_schema.acceleration_max
         limit = episode.scenario.speed_limit
         applied_total, limited_by = 0.0, ""
-        collision_with, end_of_road, completed = "", False, False
+        collision_with, end_of_road, completed, aborted = "", False, False, False
         done = 0
         for _ in range(episode.substeps):
             if episode.simulator_drives:
@@ -340,9 +338,11 @@ class HighwayBackend(Backend):
             if self._front(episode, ego) >= episode.scenario.length:
                 end_of_road = True
                 break
-            if episode.lane_change_target is not None and self._lane_change_done(episode):
-                episode.lane_change_target, episode.changing_lane = None, 0
-                completed = True
+            if episode.lane_change is not None:
+                if self._lane_change_done(episode):
+                    episode.lane_change, completed = None, True
+                elif episode.lane_change.expired(episode.time):
+                    episode.lane_change, aborted = None, True
         action = AppliedAction(
             requested_acceleration=acceleration,
             requested_lane_change=lane_change,
@@ -358,6 +358,7 @@ class HighwayBackend(Backend):
             lane_change_started=started,
             lane_change_completed=completed,
             lane_change_refused=bool(refused),
+            lane_change_aborted=aborted,
         )
         obs = self._observe(episode, seq, events, action)
         reason = self._termination(episode, obs)
@@ -386,7 +387,7 @@ class HighwayBackend(Backend):
                 episode.leader_arrival = episode.time
 
     def _lane_change_refusal(self, episode: _Episode, direction: int) -> str:
-        if episode.lane_change_target is not None:
+        if episode.lane_change is not None:
             return "in_progress"
         _from, _to, index = episode.ego.lane_index
         target = index - direction
@@ -413,8 +414,9 @@ class HighwayBackend(Backend):
 
     @staticmethod
     def _lane_change_done(episode: _Episode) -> bool:
-        ego = episode.ego
-        target = (*ego.lane_index[:2], episode.lane_change_target)
+        ego, change = episode.ego, episode.lane_change
+        assert change is not None
+        target = (*ego.lane_index[:2], change.target)
         if ego.lane_index != target:
             return False
         _, lateral = episode.road.network.get_lane(target).local_coordinates(ego.position)
@@ -513,7 +515,7 @@ class HighwayBackend(Backend):
                 lane_count=lanes,
                 position=min(float(s + ego.LENGTH / 2), episode.scenario.length),
                 speed_limit=float(lane.speed_limit),
-                changing_lane=episode.changing_lane,
+                changing_lane=0 if episode.lane_change is None else episode.lane_change.direction,
             ),
             neighbours=Neighbours(**slots),
             events=events,

@@ -33,7 +33,7 @@ from protocol.messages import (
     OptionValue,
     ScenarioInfo,
 )
-from sim_server.backend import Backend, BackendError
+from sim_server.backend import Backend, BackendError, LaneChange
 from sim_server.scenarios import (
     BUILTIN_SCENARIOS,
     EGO_ID,
@@ -85,9 +85,7 @@ class _Episode:
     sumo_drives: bool = False
     one_way: bool = False
     """A built-in road: no lane beyond its edge's outer lanes (no opposite-direction lanes)."""
-    lane_change_target: int | None = None
-    changing_lane: int = 0
-    """Direction of the lane change under way (`Ego.changing_lane`)."""
+    lane_change: LaneChange | None = None
     stopped_since: float | None = None
     done: bool = False
     last: Observation | None = None
@@ -287,12 +285,13 @@ class SumoBackend(Backend):
         if lane_change and not refused:
             target = self._lane(episode)[0] + lane_change
             api.vehicle.changeLane(EGO_ID, target, 2.0)
-            episode.lane_change_target, episode.changing_lane = target, lane_change
+            episode.lane_change = LaneChange(target, lane_change, api.simulation.getTime())
             started = True
         low = self.action_schema.acceleration_min
         high = self.action_schema.acceleration_max
         applied_total, limited_by = 0.0, ""
-        collision_with, end_of_road, completed, teleported = "", False, False, False
+        collision_with, end_of_road, teleported = "", False, False
+        completed = aborted = False
         substeps_done = 0
         for _ in range(episode.substeps):
             if episode.sumo_drives:
@@ -323,9 +322,12 @@ class SumoBackend(Backend):
             if EGO_ID in arrived:
                 end_of_road = True
                 break
-            if episode.lane_change_target is not None and _lane_change_done(api, episode):
-                episode.lane_change_target, episode.changing_lane = None, 0
-                completed = True
+            change = episode.lane_change
+            if change is not None:
+                if _lane_change_done(api, change):
+                    episode.lane_change, completed = None, True
+                elif change.expired(api.simulation.getTime()):
+                    episode.lane_change, aborted = None, True
         action = AppliedAction(
             requested_acceleration=request,
             requested_lane_change=lane_change,
@@ -343,8 +345,9 @@ class SumoBackend(Backend):
                 lane_change_completed=completed,
                 lane_change_refused=bool(refused),
                 teleported=teleported,
+                lane_change_aborted=aborted,
             )
-            if collision_with or end_of_road or started or completed or refused or teleported
+            if any((collision_with, end_of_road, started, completed, aborted, refused, teleported))
             else _QUIET
         )
         if end_of_road:
@@ -372,7 +375,7 @@ class SumoBackend(Backend):
         return obs
 
     def _lane_change_refusal(self, episode: _Episode, direction: int) -> str:
-        if episode.lane_change_target is not None:
+        if episode.lane_change is not None:
             return "in_progress"
         lane, lane_count = self._lane(episode)
         if not 0 <= lane + direction < lane_count:
@@ -455,7 +458,7 @@ class SumoBackend(Backend):
             lane_count=lane_count,
             position=episode.entry_offset + vehicle.getDistance(EGO_ID),
             speed_limit=self._api.lane.getMaxSpeed(lane_id),
-            changing_lane=episode.changing_lane,
+            changing_lane=0 if episode.lane_change is None else episode.lane_change.direction,
         )
         x, y = vehicle.getPosition(EGO_ID)
         heading = math.radians(vehicle.getAngle(EGO_ID))
@@ -586,8 +589,8 @@ def _second(pair: tuple[str, float]) -> float:
     return pair[1]
 
 
-def _lane_change_done(api: Any, episode: _Episode) -> bool:
+def _lane_change_done(api: Any, change: LaneChange) -> bool:
     return (
-        api.vehicle.getLaneIndex(EGO_ID) == episode.lane_change_target
+        api.vehicle.getLaneIndex(EGO_ID) == change.target
         and abs(api.vehicle.getLateralLanePosition(EGO_ID)) < 1e-6
     )

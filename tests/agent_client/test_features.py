@@ -29,11 +29,9 @@ def test_lane_changing_features_see_the_lanes() -> None:
     features = FeatureMap("lc")
     middle = make_observation(ego=Ego(15.0, 0.0, 1, 3, 100.0, 22.22))
     right = make_observation(ego=Ego(15.0, 0.0, 0, 3, 100.0, 22.22))
-    changing = make_observation(ego=Ego(15.0, 0.0, 0, 3, 100.0, 22.22, changing_lane=1))
-    assert features.dim == 6 + 5 * 3 + 2 + 1
-    assert list(features(middle)[-3:]) == [1.0, 1.0, 0.0]
-    assert list(features(right)[-3:]) == [1.0, 0.0, 0.0]
-    assert list(features(changing)[-3:]) == [1.0, 0.0, 1.0]  # the change under way: left
+    assert features.dim == 6 + 5 * 3 + 2
+    assert list(features(middle)[-2:]) == [1.0, 1.0]
+    assert list(features(right)[-2:]) == [1.0, 0.0]
 
 
 def test_unknown_feature_set() -> None:

@@ -38,9 +38,9 @@ def test_a_saved_policy_drives_like_the_agent(tmp_path: Path) -> None:
 
 
 def test_a_policy_of_an_older_feature_set_is_refused_with_the_reason(tmp_path: Path) -> None:
-    agent = Agent(FeatureMap("lc").dim - 1, 3, seed=3)  # as "lc" was before changing_lane
+    agent = Agent(FeatureMap("lc").dim + 1, 3, seed=3)  # as if "lc" had lost a feature since
     save_policy(tmp_path / "policy.pt", agent, "lc", ActionScale(-6.0, 3.0))
-    with pytest.raises(FeatureMismatch, match=r"takes 23 features.*'lc' now has 24"):
+    with pytest.raises(FeatureMismatch, match=r"takes 24 features.*'lc' now has 23"):
         load_policy_driver(tmp_path / "policy.pt")
 
 

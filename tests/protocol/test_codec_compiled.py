@@ -172,7 +172,7 @@ def mutated(draw: st.DrawFn, wire: dict[str, Any]) -> dict[str, Any]:
         while True:
             if not target:
                 break
-            key = draw(st.sampled_from(sorted(target)))
+            key = draw(st.sampled_from(sorted(target, key=repr)))
             if isinstance(target[key], dict) and draw(st.booleans()):
                 target = target[key]
                 continue

@@ -6,6 +6,7 @@ one libsumo backend and one TraCI backend (its own ``sumo`` process).
 
 from __future__ import annotations
 
+import random
 import subprocess
 import time
 from collections.abc import Iterator
@@ -18,7 +19,7 @@ from protocol.codec import encode
 from protocol.errors import ErrorCode
 from protocol.messages import Observation, OptionValue
 from sim_server import cli
-from sim_server.backend import BackendError
+from sim_server.backend import LANE_CHANGE_TIMEOUT_S, BackendError
 from sim_server.scenarios import EGO_ID, EGO_ROUTE, CustomScenario
 from sim_server.sumo_backend import SumoBackend
 from sim_server.sumo_runtime import find_sumo_binary, free_port
@@ -168,6 +169,33 @@ def test_lane_change_takes_two_seconds_and_completes(backend: SumoBackend) -> No
     assert [o.ego.changing_lane for o in during] == [direction] * len(during)
     assert done.ego.changing_lane == 0
     assert all(o.ego.changing_lane == 0 for o in stream[: stream.index(started[0])])
+
+
+def test_a_lane_change_sumo_never_begins_is_given_up_not_waited_for(backend: SumoBackend) -> None:
+    """SUMO drops a request it could not begin within 2 s (the gap closed): seed 100 has one.
+
+    Before the timeout the ego waited for it to the end of the episode, every further command
+    refused with in_progress.
+    """
+    rng, driver = random.Random(0), IDMDriver()
+    obs = backend.reset("cflc", 100, options(backend, "cflc"))
+    started_at: float | None = None
+    ends = {"completed": 0, "aborted": 0}
+    for seq in range(1, 700):
+        command = rng.choice([-1, 1]) if rng.random() < 0.3 else 0
+        obs = backend.step(seq, driver.act(obs)[0], command)
+        if obs.events.lane_change_started:
+            started_at = obs.time
+        if obs.events.lane_change_completed or obs.events.lane_change_aborted:
+            assert started_at is not None and obs.ego.changing_lane == 0
+            ends["aborted" if obs.events.lane_change_aborted else "completed"] += 1
+            started_at = None
+        if started_at is not None:
+            assert obs.ego.changing_lane != 0
+            assert obs.time - started_at <= LANE_CHANGE_TIMEOUT_S + 1e-6
+        if obs.terminated or obs.truncated:
+            break
+    assert ends["aborted"] >= 1 and ends["completed"] >= 10, ends
 
 
 def test_a_lane_change_is_refused_in_progress_exactly_while_one_is_under_way(
