@@ -230,16 +230,20 @@ def table3(gaps: Iterable[LaneChangeGap]) -> dict[str, float | int | None]:
 
 
 def lane_change_stats(
-    started: int, refused: int, distance_m: float, lanes: int, episodes: int
+    started: int, refused: int, distance_m: float, lanes: int, episodes: int, aborted: int = 0
 ) -> dict[str, float | int | None]:
-    """Instructions per episode, success rate and frequency from lane-change counts."""
+    """Instructions per episode, success rate and frequency from lane-change counts.
+
+    The frequency counts the lane changes made: started and not given up by the simulator.
+    """
     instructions = started + refused
     return {
         "started": started,
         "refused": refused,
+        "aborted": aborted,
         "instructions_per_episode": instructions / episodes if episodes else None,
         "success_rate": started / instructions if instructions else None,
-        "frequency": lane_change_frequency(started, distance_m, lanes),
+        "frequency": lane_change_frequency(started - aborted, distance_m, lanes),
     }
 
 
@@ -280,6 +284,7 @@ def summarise(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
                 distance,
                 lanes,
                 len(records),
+                sum(s.lane_changes_aborted for s in summaries),
             ),
             "refused_by_reason": dict(sorted(refusals.items())),
         },

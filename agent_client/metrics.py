@@ -92,6 +92,8 @@ class EpisodeSummary:
     lane_changes_refused: int
     successful_lc_reward: float = 0.0
     """Sum of the rewards of the steps whose lane-change instruction started a change."""
+    lane_changes_aborted: int = 0
+    """Started lane changes the simulator gave up (counted in `lane_changes_started` too)."""
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -165,6 +167,7 @@ class EpisodeRecorder:
                     if obs.events.lane_change_started
                 )
             ),
+            lane_changes_aborted=sum(o.events.lane_change_aborted for o in observations),
         )
 
 

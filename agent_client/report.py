@@ -274,6 +274,8 @@ def _lc_section(metrics: dict[str, Any]) -> list[str]:
     for role, d in drivers.items():
         stats = d["lane_changes"]
         refused = ", ".join(f"{k} {v}" for k, v in stats["refused_by_reason"].items()) or "none"
+        if stats.get("aborted"):
+            refused += f"; started but aborted by the simulator: {stats['aborted']}"
         rows.append(
             [
                 LABELS[role],

@@ -16,6 +16,7 @@ from agent_client.evaluation import (
     headway_stats,
     lane_change_frequency,
     lane_change_gaps,
+    lane_change_stats,
     record_episode,
     summarise,
     table2,
@@ -51,6 +52,13 @@ def test_lane_change_frequency_per_km_per_lane() -> None:
     assert lane_change_frequency(3, 2000.0, 3) == pytest.approx(0.5)
     assert lane_change_frequency(1, 500.0, 1) == pytest.approx(2.0)
     assert lane_change_frequency(1, 0.0, 3) is None
+
+
+def test_lane_changes_the_simulator_gave_up_are_not_counted_as_made() -> None:
+    stats = lane_change_stats(4, 6, 2000.0, 3, 2, aborted=1)
+    assert stats["instructions_per_episode"] == 5.0 and stats["success_rate"] == 0.4
+    assert stats["frequency"] == pytest.approx(3 / 6)  # 3 made over 2 km of 3 lanes
+    assert stats["aborted"] == 1
 
 
 def lc_observations() -> list:
