@@ -262,8 +262,9 @@ def leaf_paths(wire: dict[str, Any], prefix: tuple[str, ...] = ()) -> list[tuple
 FULL_OBSERVATION = codec._wire_map(REPLIES[1])  # every field present, a ceiling too
 
 
-@pytest.mark.parametrize("path", leaf_paths(FULL_OBSERVATION), ids=".".join)
-def test_every_field_of_an_observation_gets_the_reference_verdict(path: tuple[str, ...]) -> None:
+def with_odd_field(path: tuple[str, ...]) -> Iterator[tuple[Any, dict[str, Any]]]:
+    """The full observation's wire map with the field at `path` replaced by each odd value (or
+    removed: "missing")."""
     for odd in [*ODD, "missing"]:
         raw = msgpack.unpackb(msgpack.packb(FULL_OBSERVATION), raw=False)
         parent = raw
@@ -273,6 +274,12 @@ def test_every_field_of_an_observation_gets_the_reference_verdict(path: tuple[st
             del parent[path[-1]]
         else:
             parent[path[-1]] = odd
+        yield odd, raw
+
+
+@pytest.mark.parametrize("path", leaf_paths(FULL_OBSERVATION), ids=".".join)
+def test_every_field_of_an_observation_gets_the_reference_verdict(path: tuple[str, ...]) -> None:
+    for odd, raw in with_odd_field(path):
         expected = outcome(reference_dataclass(Observation), raw, "observation")
         assert outcome(codec._converter(Observation), raw, "observation") == expected, odd
 
@@ -378,15 +385,7 @@ def test_hostile_request_frames_get_the_precise_verdict(data: st.DataObject) -> 
 def test_every_field_of_an_observation_frame_gets_the_precise_verdict(
     path: tuple[str, ...],
 ) -> None:
-    for odd in [*ODD, "missing"]:
-        raw = msgpack.unpackb(msgpack.packb(FULL_OBSERVATION), raw=False)
-        parent = raw
-        for key in path[:-1]:
-            parent = parent[key]
-        if odd == "missing":
-            del parent[path[-1]]
-        else:
-            parent[path[-1]] = odd
+    for odd, raw in with_odd_field(path):
         if odd == -(2**63) - 1:
             continue  # no peer can send this: below msgpack's int64
         fast, precise = both_verdicts(decode_reply, msgpack.packb(raw))
