@@ -4,13 +4,14 @@ In one run, on the same scenario, seeds and per-step queries, the same number of
 
 * ``inproc`` - the ceiling: `SumoBackend` on libsumo called directly in this process;
 * ``tcp``    - our bridge: a real ``sim-server`` subprocess on a free loopback port, and this
-  process as the client (`agent_client.connection.Connection`: hello, reset, step...);
+  process as the client (`agent_client.transport.ZmqChannel`: hello, reset, step...);
 * ``ipc``    - the same over an ``ipc://`` socket;
-* ``direct`` - the same over ``direct://``: a plain TCP socket, no ZeroMQ (`protocol.direct`),
-  both ends busy-waiting up to ``--spin-us`` for each other before blocking;
+* ``direct`` - the same over ``direct://``: a plain TCP socket, no ZeroMQ
+  (`protocol.transport.direct`), both ends busy-waiting up to ``--spin-us`` for each other
+  before blocking;
 * ``traci``  - the peer: `SumoBackend` over SUMO's own TraCI socket (a ``sumo`` process), called
   in this process;
-* ``tcp-raw`` (on request) - the tcp bridge with a bare client instead of `Connection` (a REQ
+* ``tcp-raw`` (on request) - the tcp bridge with a bare client instead of `ZmqChannel` (a REQ
   socket, a poll with the deadline, the codec): what the client's own bookkeeping costs;
 * the floor, what no bridge in Python can go below: ``cached-tcp`` and ``cached-direct`` - our
   server answering a repeated step from its reply cache (the whole server path and both codecs,
@@ -54,14 +55,14 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent_client.connection import connect  # noqa: E402
-from agent_client.idm import IDMDriver  # noqa: E402
-from protocol.codec import decode_reply, encode  # noqa: E402
-from protocol.direct import DEFAULT_SPIN_US  # noqa: E402
-from protocol.messages import Hello, Observation, OptionValue, Reset, Step  # noqa: E402
-from protocol.version import PROTOCOL_VERSION  # noqa: E402
-from sim_server.fake_backend import FakeBackend  # noqa: E402
-from sim_server.readiness import LISTENING, NotReady, stop_process, wait_for_line  # noqa: E402
+from agent_client.drivers.idm import IDMDriver
+from agent_client.transport import connect
+from protocol.codec import decode_reply, encode
+from protocol.messages import Hello, Observation, OptionValue, Reset, Step
+from protocol.transport.direct import DEFAULT_SPIN_US
+from protocol.version import PROTOCOL_VERSION
+from sim_server.backends.fake import FakeBackend
+from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 VARIANTS = (
     "inproc", "tcp", "ipc", "direct", "traci", "tcp-raw",
@@ -159,7 +160,7 @@ def in_process(
     stack: contextlib.ExitStack, variant: str, scenario: str, extra: dict[str, OptionValue],
     cache_dir: Path, spin_us: float = DEFAULT_SPIN_US,
 ) -> tuple[ResetFn, StepFn]:  # fmt: skip
-    from sim_server.sumo_backend import SumoBackend
+    from sim_server.backends.sumo.backend import SumoBackend
 
     over: dict[str, Any] = {"traci": True} if variant == "traci" else {}
     backend = SumoBackend(cache_dir=cache_dir, **over)

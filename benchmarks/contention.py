@@ -28,8 +28,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent_client.idm import IDMDriver  # noqa: E402
-from sim_server.readiness import stop_process, wait_for_line  # noqa: E402
+from agent_client.drivers.idm import IDMDriver
+from sim_server.serve.readiness import stop_process, wait_for_line
 
 READY = "neighbour ready"
 NEIGHBOURS = {
@@ -68,7 +68,7 @@ def main() -> int:
     parser.add_argument("--block", type=int, default=100, help="steps per mode and round")
     args = parser.parse_args()
 
-    from sim_server.sumo_backend import SumoBackend
+    from sim_server.backends.sumo.backend import SumoBackend
 
     backend = SumoBackend()
     options = dict({s.name: s for s in backend.scenarios()}[args.scenario].options)

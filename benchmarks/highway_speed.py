@@ -5,7 +5,7 @@ keeping its lane) at 0.1 s decisions, so that one step is one simulation step:
 
 * ``inproc``  - `HighwayBackend` called directly in this process;
 * ``bridge``  - a real ``sim-server --backend highway`` subprocess on a free loopback port, this
-  process the client (`agent_client.connection.Connection`);
+  process the client (`agent_client.transport.ZmqChannel`);
 * ``sumo``    - (``--sumo``) `SumoBackend` in-process on the same-named scenario, for reference.
 
 Only steps are timed, with ``report_ceiling`` off; resets and the ceiling's run-on (the
@@ -36,11 +36,11 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent_client.connection import Connection  # noqa: E402
-from agent_client.idm import IDMDriver  # noqa: E402
-from protocol.messages import Observation, OptionValue, Reset, Step  # noqa: E402
-from sim_server.highway_backend import HighwayBackend  # noqa: E402
-from sim_server.readiness import LISTENING, wait_for_line  # noqa: E402
+from agent_client.drivers.idm import IDMDriver
+from agent_client.transport import ZmqChannel
+from protocol.messages import Observation, OptionValue, Reset, Step
+from sim_server.backends.highway import HighwayBackend
+from sim_server.serve.readiness import LISTENING, wait_for_line
 
 StepFn = Callable[[int, float, int], Observation]
 ResetFn = Callable[[int], Observation]
@@ -109,7 +109,7 @@ def server() -> Iterator[str]:
 
 
 def through_bridge(scenario: str, steps: int, seed: int) -> dict[str, float]:
-    with server() as address, Connection(address, timeout_s=120.0) as connection:
+    with server() as address, ZmqChannel(address, timeout_s=120.0) as connection:
         connection.hello()
         options: dict[str, OptionValue] = {"report_ceiling": False}
 
@@ -130,7 +130,7 @@ def through_bridge(scenario: str, steps: int, seed: int) -> dict[str, float]:
 def sumo_in_process(scenario: str, steps: int, seed: int) -> dict[str, float]:
     import tempfile
 
-    from sim_server.sumo_backend import SumoBackend
+    from sim_server.backends.sumo.backend import SumoBackend
 
     with tempfile.TemporaryDirectory() as cache:
         backend = SumoBackend(cache_dir=Path(cache))

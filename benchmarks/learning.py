@@ -25,9 +25,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent_client.config import TrainConfig, apply_overrides, parse_assignment  # noqa: E402
-from agent_client.train import QuietReporter, Trainer  # noqa: E402
-from sim_server.readiness import LISTENING, NotReady, wait_for_line  # noqa: E402
+from agent_client.training.config import TrainConfig, apply_overrides, parse_assignment
+from agent_client.training.trainer import QuietReporter, Trainer
+from sim_server.serve.readiness import LISTENING, NotReady, wait_for_line
 
 
 def start_server() -> tuple[subprocess.Popen[str], str]:
@@ -122,8 +122,6 @@ def main() -> int:
             )
             for assignment in args.set:
                 update = parse_assignment(assignment)
-                if "ddpg" in update:
-                    update = {"ddpg": {**config.ddpg.to_dict(), **update["ddpg"]}}
                 config = apply_overrides(config, update)
             print(f"== {args.scenario} reward={reward} seed={seed}", flush=True)
             result = run_one(config, args.out / f"{args.scenario}-{reward}-{seed}", args.minutes,

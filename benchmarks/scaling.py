@@ -30,12 +30,12 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from agent_client.config import TrainConfig, apply_overrides  # noqa: E402
-from agent_client.train import QuietReporter, Trainer  # noqa: E402
-from agent_client.vector_env import RemoteVectorEnv  # noqa: E402
-from sim_server.readiness import LISTENING, NotReady, wait_for_line  # noqa: E402
+from agent_client.envs.vector_env import RemoteVectorEnv
+from agent_client.training.config import TrainConfig, apply_overrides
+from agent_client.training.trainer import QuietReporter, Trainer
+from sim_server.serve.readiness import LISTENING, NotReady, wait_for_line
 
 
 def start_workers(count: int, backend: str) -> tuple[subprocess.Popen[str], list[str]]:
@@ -86,7 +86,7 @@ def training(addresses: list[str], scenario: str, seconds: float) -> dict[str, f
             "episodes": 100_000,
             "eval_every": 0,
             "checkpoint_every": 1000,
-            "ddpg": {"learning_starts": 500},
+            "learner": {"learning_starts": 500},
         },  # mostly steady-state learning within the budget
     )
     reporter = StopAfter(seconds)

@@ -33,17 +33,18 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent_client.connection import Connection, ServerError, ServerTimeout  # noqa: E402
-from agent_client.idm import IDMDriver  # noqa: E402
-from protocol.messages import Close, Hello, Observation, Reset, Step  # noqa: E402
-from protocol.version import PROTOCOL_VERSION  # noqa: E402
-from sim_server.readiness import LISTENING, NotReady, stop_process, wait_for_line  # noqa: E402
+from agent_client.drivers.idm import IDMDriver
+from agent_client.errors import ServerError, ServerTimeout
+from agent_client.transport import ZmqChannel
+from protocol.messages import Close, Hello, Observation, Reset, Step
+from protocol.version import PROTOCOL_VERSION
+from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 CRASHING_LEARNER = """
 import sys
-from agent_client.connection import Connection
+from agent_client.transport import ZmqChannel
 from protocol.messages import Hello, Reset, Step
-connection = Connection(sys.argv[1], timeout_s=60.0)
+connection = ZmqChannel(sys.argv[1], timeout_s=60.0)
 connection.request(Hello((1, 0), "doomed learner"), timeout_s=60.0)
 connection.request(Reset(sys.argv[2], int(sys.argv[3]), {"max_episode_time": 1000.0}), 120.0)
 seq = 0
@@ -93,7 +94,7 @@ def start_server(backend: str) -> tuple[subprocess.Popen[str], str]:
         raise
 
 
-def hello_when_free(connection: Connection, limit_s: float) -> float:
+def hello_when_free(connection: ZmqChannel, limit_s: float) -> float:
     """Say hello until the server stops answering busy; returns the seconds it took."""
     started = time.monotonic()
     while True:
@@ -107,7 +108,7 @@ def hello_when_free(connection: Connection, limit_s: float) -> float:
 
 
 def run_episode(
-    connection: Connection, soak: Soak, seed: int, options: dict[str, float], retry_every: int
+    connection: ZmqChannel, soak: Soak, seed: int, options: dict[str, float], retry_every: int
 ) -> None:
     """One IDM episode; every `retry_every`-th step is abandoned once and asked again."""
     driver = IDMDriver()
@@ -157,7 +158,7 @@ def soak(args: argparse.Namespace) -> Soak:
     options = {"decision_interval": args.decision_interval, "max_episode_time": args.episode_time}
     started = time.monotonic()
     try:
-        connection = Connection(address, timeout_s=30.0)
+        connection = ZmqChannel(address, timeout_s=30.0)
         hello_when_free(connection, 30.0)
         for episode in range(args.episodes):
             if args.crash_every and episode and episode % args.crash_every == 0:

@@ -24,7 +24,7 @@ COPY agent_client /src/agent_client
 # script here: remove it. Then check the image is CPU-only and SUMO-free.
 RUN /opt/av-bridge/bin/python -m pip install ${PIP_EXTRA_ARGS} "/src[${EXTRAS}]" \
     && rm /opt/av-bridge/bin/sim-server \
-    && /opt/av-bridge/bin/python -c "import torch, gymnasium, agent_client.cli; \
+    && /opt/av-bridge/bin/python -c "import torch, gymnasium, agent_client.cli.main; \
 assert torch.version.cuda is None, 'torch is a CUDA build: ' + torch.__version__" \
     && ! /opt/av-bridge/bin/python -c "import libsumo" 2>/dev/null \
     && ! /opt/av-bridge/bin/pip list 2>/dev/null | grep -i '^nvidia-'

@@ -12,7 +12,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from sim_server.scenarios import BUILTIN_SCENARIOS, build_road, default_cache_dir
+from sim_server.backends.sumo.scenarios import BUILTIN_SCENARIOS, build_road, default_cache_dir
 
 
 def main(argv: list[str]) -> int:

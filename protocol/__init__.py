@@ -6,16 +6,19 @@ This package imports neither the simulator side nor the learner side, nor SUMO, 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES, decode_reply, decode_request, encode
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import (
+    AccelerationLimit,
     ActionSchema,
     AppliedAction,
     Bye,
     Close,
     Ego,
+    EndReason,
     Error,
     Events,
     FieldSpec,
     Hello,
     LaneChange,
+    LaneChangeRefusal,
     LeaderTrip,
     Message,
     Neighbour,
@@ -29,7 +32,7 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.schema import NEIGHBOUR_SLOTS, OBSERVATION_FIELDS, Flattener
-from protocol.transport import DEFAULT_ADDRESS, Endpoint, parse_endpoint
+from protocol.transport.endpoint import DEFAULT_ADDRESS, Endpoint, parse_endpoint
 from protocol.version import PROTOCOL_VERSION, format_version, is_compatible
 
 __all__ = [
@@ -38,11 +41,13 @@ __all__ = [
     "NEIGHBOUR_SLOTS",
     "OBSERVATION_FIELDS",
     "PROTOCOL_VERSION",
+    "AccelerationLimit",
     "ActionSchema",
     "AppliedAction",
     "Bye",
     "Close",
     "Ego",
+    "EndReason",
     "Endpoint",
     "Error",
     "ErrorCode",
@@ -51,6 +56,7 @@ __all__ = [
     "Flattener",
     "Hello",
     "LaneChange",
+    "LaneChangeRefusal",
     "LeaderTrip",
     "Message",
     "Neighbour",

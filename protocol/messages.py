@@ -12,7 +12,7 @@ lane; lateral offsets are positive to the left.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 from typing import ClassVar
 
 OptionValue = bool | int | float | str | None
@@ -24,6 +24,51 @@ class LaneChange(IntEnum):
     RIGHT = -1
     KEEP = 0
     LEFT = 1
+
+
+class EndReason(StrEnum):
+    """Why an episode ended (`Observation.reason`; "" while it runs)."""
+
+    COLLISION = "collision"
+    STOPPED = "stopped"
+    """Unreasonably slow with no leader close ahead, for ``stop_patience`` seconds."""
+    END_OF_ROAD = "end_of_road"
+    EGO_LOST = "ego_lost"
+    """The simulator lost the ego without an arrival (a teleport, a removal)."""
+    TIME_LIMIT = "time_limit"
+    """The only reason of a truncated episode: every other one terminates it."""
+
+    @property
+    def terminates(self) -> bool:
+        """True if the episode is terminated (an MDP end), False if it is truncated."""
+        return self is not EndReason.TIME_LIMIT
+
+
+class LaneChangeRefusal(StrEnum):
+    """Why a lane-change command was not started (`AppliedAction.lane_change_refused`)."""
+
+    GAP_TOO_SMALL = "gap_too_small"
+    """The target lane has no safe gap (the paper's state G)."""
+    NO_LANE = "no_lane"
+    """There is no lane on that side."""
+    IN_PROGRESS = "in_progress"
+    """A lane change is still under way (`Ego.changing_lane` is not 0)."""
+    SIMULATOR_DRIVES = "simulator_drives"
+    """The simulator drives the ego (option ``ego_driver = "sumo"``)."""
+
+
+class AccelerationLimit(StrEnum):
+    """Why the applied acceleration differs from the requested one
+    (`AppliedAction.acceleration_limited_by`; "" when applied as asked)."""
+
+    BOUNDS = "bounds"
+    """Clipped to the action schema's bounds."""
+    SPEED_LIMIT = "speed_limit"
+    """Reduced so that the speed stays within the road's limit."""
+    STANDSTILL = "standstill"
+    """Raised so that the speed does not go below zero."""
+    SIMULATOR = "simulator"
+    """The simulator drives the ego."""
 
 
 # --------------------------------------------------------------------------- requests
@@ -204,11 +249,8 @@ class Events:
 class AppliedAction:
     """The action as requested and as applied, with the reasons for any difference.
 
-    `acceleration_limited_by` is "" (applied as asked), "bounds" (clipped to the action schema),
-    "speed_limit" (reduced to keep the road's speed limit), "standstill" (raised so that the
-    speed does not go below zero) or "simulator" (the simulator drives the ego: option
-    ``ego_driver = "sumo"``). `lane_change_refused` is "" or "gap_too_small", "no_lane",
-    "in_progress", "simulator_drives".
+    `acceleration_limited_by` is "" (applied as asked) or an `AccelerationLimit`;
+    `lane_change_refused` is "" or a `LaneChangeRefusal`. Both are plain strings on the wire.
     """
 
     requested_acceleration: float
@@ -237,8 +279,8 @@ class LeaderTrip:
 class Observation:
     """Recognition state of the ego after a reset (seq 0) or a step (the step's seq).
 
-    `reason` says why an episode ended: "collision", "stopped", "end_of_road", "time_limit",
-    "ego_lost", or "" while it runs. `ceiling` is set on the last observation of an episode.
+    `reason` says why an episode ended (an `EndReason`, a plain string on the wire), or is ""
+    while it runs. `ceiling` is set on the last observation of an episode.
     """
 
     TYPE: ClassVar[str] = "observation"

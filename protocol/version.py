@@ -6,6 +6,8 @@ Revision history:
     1.1  `ego.changing_lane`: the direction of the lane change under way (0 from 1.0 servers);
          `events.lane_change_aborted`: a started lane change the simulator gave up.
 
+The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
+
 Compatibility rule: peers with the same major version interoperate. A minor version only adds
 optional fields or message types; receivers ignore map keys they do not know.
 """

@@ -15,8 +15,11 @@
 #      docker/resolve-servers.sh,
 #   7. removes its containers, network and keys volume on exit.
 #
-# Why the podman flags: see ../shared/notes/containers.md (no Docker daemon or registry here,
-# crun cannot set rlimits on this VM, pip must trust this machine's CA bundle).
+# Why the podman flags (docs/docker.md, "Testing the images"): there is no Docker daemon or
+# container registry here, hence podman and a debootstrapped base image; podman's default
+# runtime crun fails on this VM ("setrlimit RLIMIT_NOFILE: Operation not permitted"), hence
+# --runtime /usr/sbin/runc and explicit --ulimit values; pip inside a build reaches the package
+# index over the host network and must trust this machine's CA bundle, mounted read-only.
 #
 # Environment: BASE (base image; default localhost/debian-py:bookworm, built by debootstrap when
 # missing), WHEELS (folder with the torch CPU wheel, default /opt/wheels), EPISODES (default 3),
@@ -57,7 +60,7 @@ if ! podman_ image exists "$BASE"; then
     rootfs=$(mktemp -d /tmp/debian-py.XXXXXX)
     start=$(date +%s)
     debootstrap --variant=minbase --include=python3,python3-venv,python3-pip,ca-certificates \
-        bookworm "$rootfs" http://deb.debian.org/debian >/tmp/debootstrap.log 2>&1 ||
+        bookworm "$rootfs" >/tmp/debootstrap.log 2>&1 ||
         { tail -n 20 /tmp/debootstrap.log; exit 1; }
     tar -C "$rootfs" -c . | podman_ import - "$BASE" >/dev/null
     rm -rf "$rootfs"

@@ -1,7 +1,8 @@
 """``sim-server``: run a simulator behind the bridge protocol.
 
-Prints ``listening on ADDRESS`` on stdout once it accepts requests; logs go to stderr.
-``sim-server keygen --out DIR`` writes CURVE key pairs for an authenticated server.
+Prints ``listening on ADDRESS`` on stdout once it accepts requests; logs go to stderr. A command
+line that cannot be served is refused with one line on stderr naming the bad value, and exit
+status 2. ``sim-server keygen --out DIR`` writes CURVE key pairs for an authenticated server.
 """
 
 from __future__ import annotations
@@ -11,33 +12,54 @@ import logging
 import os
 import signal
 import sys
-import threading
 from pathlib import Path
 from types import FrameType
+from typing import NoReturn
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES
-from protocol.direct import DEFAULT_SPIN_US
-from protocol.security import KeyPair, ServerCredentials, generate_keys, load_key_pair
-from protocol.transport import DEFAULT_ADDRESS, HEARTBEAT_TIMEOUT_MS, parse_endpoint
+from protocol.transport.direct import DEFAULT_SPIN_US
+from protocol.transport.endpoint import DEFAULT_ADDRESS, Endpoint, parse_endpoint
+from protocol.transport.security import ServerCredentials, generate_keys, load_key_pair
+from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS
 from sim_server import __version__
-from sim_server.backend import Backend
-from sim_server.direct_server import DirectServer
-from sim_server.server import (
-    DEFAULT_SESSION_TIMEOUT_S,
-    Server,
-    Session,
-    StopFlag,
-    format_listening,
-)
+from sim_server.backends.base import Backend
+from sim_server.errors import UsageError
+from sim_server.serve.direct import DirectServer
+from sim_server.serve.lifecycle import stop_with_parent
+from sim_server.serve.readiness import format_listening
+from sim_server.serve.zeromq import Server
+from sim_server.session import DEFAULT_SESSION_TIMEOUT_S, Session
 
 SECRET_KEY_ENV = "SIM_SERVER_SECRET_KEY"
 AUTHORIZED_KEYS_ENV = "SIM_SERVER_AUTHORIZED_KEYS"
 
 BACKENDS = ("sumo", "sumo-traci", "fake", "highway")
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+USAGE_STATUS = 2
+"""Exit status of a refused command line (as argparse's own)."""
+
+_PROVIDERS = {
+    "highway_env": ("highway-env", "highway"),
+    "libsumo": ("libsumo", "server"),
+    "traci": ("traci", "server"),
+    "sumo": ("eclipse-sumo", "server"),
+}
+"""Module a backend imports -> (the package that provides it, the extra of this project that
+installs it)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line (``--help`` lists the options)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(USAGE_STATUS, f"{self.prog}: error: {message}\n")
+
+
+# --------------------------------------------------------------------------- the parsers
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="sim-server",
         description="Serve a traffic simulator to a learner over the bridge protocol.",
     )
@@ -48,134 +70,124 @@ def build_parser() -> argparse.ArgumentParser:
         "(ZeroMQ), or direct://127.0.0.1:PORT (plain socket, loopback only, fastest) "
         f"(default {DEFAULT_ADDRESS})",
     )
+    _add_simulator_arguments(parser.add_argument_group("simulator"))
+    _add_connection_arguments(parser.add_argument_group("connections"))
+    _add_security_arguments(parser.add_argument_group("authentication (CURVE, tcp:// and ipc://)"))
+    _add_process_arguments(parser.add_argument_group("processes"))
     parser.add_argument(
+        "--log-level",
+        default="INFO",
+        type=str.upper,
+        choices=LOG_LEVELS,
+        help="DEBUG, INFO, WARNING, ERROR or CRITICAL (default INFO)",
+    )
+    parser.add_argument("--version", action="version", version=f"sim-server {__version__}")
+    return parser
+
+
+def _add_simulator_arguments(group: argparse._ArgumentGroup) -> None:
+    group.add_argument(
         "--backend",
         choices=BACKENDS,
         default="sumo",
         help="simulator: sumo (libsumo, in-process), sumo-traci (SUMO over its TraCI socket), "
         "highway (highway-env) or fake (kinematic toy for tests)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--gui",
         action="store_true",
         help="with --backend sumo-traci: run sumo-gui instead of sumo, to watch the ego "
         "(needs a display)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--traci-port",
         type=int,
         help="with --backend sumo-traci: attach to a SUMO that another tool started with "
         "--remote-port PORT on this machine, instead of starting one",
     )
-    parser.add_argument(
+    group.add_argument(
         "--sumocfg",
         type=Path,
         help="offer your own SUMO scenario (.sumocfg) in addition to the built-in ones",
     )
-    parser.add_argument("--ego-route", help="route id (in your route files) the ego drives")
-    parser.add_argument(
+    group.add_argument("--ego-route", help="route id (in your route files) the ego drives")
+    group.add_argument(
         "--scenario-name", help="name clients use for --sumocfg (default: the file's stem)"
     )
-    parser.add_argument(
+    group.add_argument(
         "--cache-dir", type=Path, help="where built scenario files go (default ~/.cache/av-bridge)"
     )
-    parser.add_argument(
+
+
+def _add_connection_arguments(group: argparse._ArgumentGroup) -> None:
+    group.add_argument(
         "--session-timeout",
         type=float,
         default=DEFAULT_SESSION_TIMEOUT_S,
         help="seconds of silence after which another client may take over one that is still "
         "connected (default %(default)g; a disconnected or frozen client is released at once)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--heartbeat-timeout",
         type=float,
         default=HEARTBEAT_TIMEOUT_MS / 1000,
         help="seconds without any sign of life (ZeroMQ heartbeats are answered even during a "
         "long gradient update) after which a client counts as gone (default %(default)g)",
     )
-    parser.add_argument(
+    group.add_argument(
         "--max-frame-bytes",
         type=int,
         default=DEFAULT_MAX_FRAME_BYTES,
         help=f"largest request accepted (default {DEFAULT_MAX_FRAME_BYTES})",
     )
-    parser.add_argument(
+    group.add_argument(
+        "--spin-us",
+        type=float,
+        help="direct:// only: microseconds to busy-wait for the next request before blocking "
+        f"(default {DEFAULT_SPIN_US}; 0 never spins: less CPU, higher latency)",
+    )
+
+
+def _add_security_arguments(group: argparse._ArgumentGroup) -> None:
+    group.add_argument(
         "--secret-key",
         type=Path,
         default=os.environ.get(SECRET_KEY_ENV) or None,
-        help="CURVE: the server's secret key file (server.key_secret from `sim-server keygen`); "
+        help="the server's secret key file (server.key_secret from `sim-server keygen`); "
         f"turns on authentication and encryption (env {SECRET_KEY_ENV})",
     )
-    parser.add_argument(
+    group.add_argument(
         "--authorized-keys",
         type=Path,
         default=os.environ.get(AUTHORIZED_KEYS_ENV) or None,
-        help="CURVE: directory of the client public keys (*.key) allowed in "
+        help="directory of the client public keys (*.key) allowed in "
         f"(default: the directory of --secret-key; env {AUTHORIZED_KEYS_ENV})",
     )
-    parser.add_argument(
+    group.add_argument(
         "--insecure",
         action="store_true",
         help="allow binding a non-loopback address without authentication",
     )
-    parser.add_argument(
+
+
+def _add_process_arguments(group: argparse._ArgumentGroup) -> None:
+    group.add_argument(
         "--workers",
         type=int,
         default=1,
         help="run N servers (one simulation each) on consecutive ports from --bind (port 0: free "
         "ports), print one readiness line per worker, restart any that dies (default 1)",
     )
-    parser.add_argument(
-        "--spin-us",
-        type=float,
-        help="direct:// only: microseconds to busy-wait for the next request before blocking "
-        f"(default {DEFAULT_SPIN_US}; 0 never spins: less CPU, higher latency)",
-    )
-    parser.add_argument(
+    group.add_argument(
         "--exit-with-parent",
         action="store_true",
         help="stop when the process that started this server exits, even by SIGKILL (the "
         "--workers supervisor starts its workers so: none outlives it)",
     )
-    parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
-    parser.add_argument("--version", action="version", version=f"sim-server {__version__}")
-    return parser
-
-
-def make_backend(args: argparse.Namespace) -> Backend:
-    if args.backend != "sumo-traci" and (args.gui or args.traci_port is not None):
-        raise SystemExit("sim-server: --gui and --traci-port need --backend sumo-traci")
-    if args.backend == "fake":
-        from sim_server.fake_backend import FakeBackend
-
-        return FakeBackend()
-    if args.backend == "highway":
-        from sim_server.highway_backend import HighwayBackend
-
-        return HighwayBackend()
-    from sim_server.scenarios import CustomScenario
-    from sim_server.sumo_backend import SumoBackend
-
-    custom: tuple[CustomScenario, ...] = ()
-    if args.sumocfg is not None:
-        name = args.scenario_name or args.sumocfg.stem
-        custom = (CustomScenario(name, args.sumocfg.resolve(), args.ego_route),)
-    if args.backend == "sumo-traci":
-        try:
-            return SumoBackend(
-                cache_dir=args.cache_dir,
-                custom=custom,
-                traci=True,
-                gui=args.gui,
-                traci_port=args.traci_port,
-            )
-        except (ValueError, FileNotFoundError) as exc:
-            raise SystemExit(f"sim-server: {exc}") from exc
-    return SumoBackend(cache_dir=args.cache_dir, custom=custom)
 
 
 def build_keygen_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="sim-server keygen",
         description="Write CURVE key pairs: server.key(_secret) and client.key(_secret). Give the "
         "server server.key_secret (and the directory of client .key files), give each learner "
@@ -197,70 +209,188 @@ def keygen(argv: list[str]) -> int:
     return 0
 
 
-def load_credentials(
-    parser: argparse.ArgumentParser, args: argparse.Namespace
-) -> ServerCredentials | None:
-    """CURVE credentials from --secret-key / --authorized-keys, or None; usage errors exit."""
+# --------------------------------------------------------------------------- usage checks
+
+
+def check_usage(args: argparse.Namespace) -> tuple[Endpoint, ServerCredentials | None]:
+    """The address to bind and the CURVE credentials; `UsageError` if the command line cannot
+    be served as given."""
+    endpoint = _endpoint(args)
+    credentials = load_credentials(args)
+    _check_exposure(endpoint, credentials, args)
+    _check_simulator(args)
+    _check_numbers(args)
+    return endpoint, credentials
+
+
+def _endpoint(args: argparse.Namespace) -> Endpoint:
+    try:
+        endpoint = parse_endpoint(args.bind)
+    except ValueError as exc:
+        raise UsageError(f"--bind {exc}") from exc
+    if endpoint.scheme != "direct" and args.spin_us is not None:
+        raise UsageError(f"--spin-us applies to direct:// addresses only, not --bind {args.bind}")
+    return endpoint
+
+
+def load_credentials(args: argparse.Namespace) -> ServerCredentials | None:
+    """CURVE credentials from --secret-key / --authorized-keys, or None."""
     if args.secret_key is None:
         if args.authorized_keys is not None:
-            parser.error("--authorized-keys needs --secret-key")
+            raise UsageError(f"--authorized-keys {args.authorized_keys} needs --secret-key")
         return None
     try:
-        keys: KeyPair = load_key_pair(args.secret_key)
+        keys = load_key_pair(args.secret_key)
     except ValueError as exc:
-        parser.error(f"--secret-key: {exc}")
+        raise UsageError(f"--secret-key: {exc}") from exc
     authorized = args.authorized_keys or args.secret_key.parent
     if not authorized.is_dir() or not any(authorized.glob("*.key")):
-        parser.error(f"--authorized-keys {authorized}: no directory of client *.key files")
+        raise UsageError(f"--authorized-keys {authorized}: no directory of client *.key files")
     return ServerCredentials(keys, authorized)
+
+
+def _check_exposure(
+    endpoint: Endpoint, credentials: ServerCredentials | None, args: argparse.Namespace
+) -> None:
+    """Only loopback addresses without authentication (unless --insecure); direct:// never
+    leaves the machine."""
+    if endpoint.scheme == "direct":
+        if credentials is not None:
+            raise UsageError("--secret-key: direct:// has no CURVE: use tcp:// with --secret-key")
+        if not endpoint.is_loopback:
+            raise UsageError(
+                f"--bind {args.bind}: direct:// binds loopback addresses only (no "
+                "authentication); use tcp:// with --secret-key across machines"
+            )
+    if not endpoint.is_loopback and credentials is None and not args.insecure:
+        raise UsageError(
+            f"--bind {args.bind} is reachable from other machines: turn on authentication with "
+            "--secret-key (keys from `sim-server keygen`), bind a loopback address, or pass "
+            "--insecure on a trusted network"
+        )
+
+
+def _check_simulator(args: argparse.Namespace) -> None:
+    """The simulator options fit --backend."""
+    for given, name in ((args.gui, "--gui"), (args.traci_port is not None, "--traci-port")):
+        if given and args.backend != "sumo-traci":
+            raise UsageError(f"{name} needs --backend sumo-traci, not --backend {args.backend}")
+    if args.traci_port is not None and not 1 <= args.traci_port <= 65535:
+        raise UsageError(f"--traci-port {args.traci_port}: expected a port in 1..65535")
+    if args.sumocfg is None:
+        for value, name in (
+            (args.ego_route, "--ego-route"),
+            (args.scenario_name, "--scenario-name"),
+        ):
+            if value is not None:
+                raise UsageError(f"{name} {value}: applies to --sumocfg only")
+        return
+    if not args.backend.startswith("sumo"):
+        raise UsageError(f"--sumocfg needs a SUMO backend (sumo, sumo-traci), not {args.backend}")
+    if not args.sumocfg.is_file():
+        raise UsageError(f"--sumocfg {args.sumocfg}: no such file")
+    if not args.ego_route:
+        raise UsageError("--sumocfg needs --ego-route (a route id defined in your route files)")
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    if args.workers < 1:
+        raise UsageError(f"--workers {args.workers}: must be at least 1")
+    if args.max_frame_bytes < 1:
+        raise UsageError(f"--max-frame-bytes {args.max_frame_bytes}: must be at least 1")
+    if not args.heartbeat_timeout > 0:
+        raise UsageError(f"--heartbeat-timeout {args.heartbeat_timeout:g}: must be > 0 s")
+    if not args.session_timeout >= 0:
+        raise UsageError(f"--session-timeout {args.session_timeout:g}: must be >= 0 s")
+
+
+# --------------------------------------------------------------------------- the backend
+
+
+def make_backend(args: argparse.Namespace) -> Backend:
+    """The backend --backend names; `UsageError` if it cannot be started as asked."""
+    try:
+        return _backend(args)
+    except ModuleNotFoundError as exc:
+        provider = _PROVIDERS.get((exc.name or "").partition(".")[0])
+        if provider is None:
+            raise
+        package, extra = provider
+        raise UsageError(
+            f"--backend {args.backend} needs {package}, which is not installed: "
+            f"pip install -e '.[{extra}]'"
+        ) from exc
+    except (ValueError, FileNotFoundError) as exc:  # SumoBackend's refusals, no sumo binary
+        raise UsageError(f"--backend {args.backend}: {exc}") from exc
+
+
+def _backend(args: argparse.Namespace) -> Backend:
+    if args.backend == "fake":
+        from sim_server.backends.fake import FakeBackend
+
+        return FakeBackend()
+    if args.backend == "highway":
+        from sim_server.backends.highway import HighwayBackend
+
+        return HighwayBackend()
+    from sim_server.backends.sumo.backend import SumoBackend
+    from sim_server.backends.sumo.scenarios import CustomScenario
+
+    custom: tuple[CustomScenario, ...] = ()
+    if args.sumocfg is not None:
+        name = args.scenario_name or args.sumocfg.stem
+        custom = (CustomScenario(name, args.sumocfg.resolve(), args.ego_route),)
+    if args.backend == "sumo-traci":
+        return SumoBackend(
+            cache_dir=args.cache_dir,
+            custom=custom,
+            traci=True,
+            gui=args.gui,
+            traci_port=args.traci_port,
+        )
+    return SumoBackend(cache_dir=args.cache_dir, custom=custom)
+
+
+# --------------------------------------------------------------------------- running
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["keygen"]:
         return keygen(argv[1:])
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s sim-server %(levelname)s %(message)s"
+        level=args.log_level, format="%(asctime)s sim-server %(levelname)s %(message)s"
     )
     try:
-        endpoint = parse_endpoint(args.bind)
+        endpoint, credentials = check_usage(args)
+        if args.workers > 1:
+            return _run_workers(argv, args)
+        backend = make_backend(args)
+    except UsageError as exc:
+        message = " ".join(str(exc).splitlines())
+        print(f"sim-server: error: {message}", file=sys.stderr)
+        return USAGE_STATUS
+    return serve(args, endpoint, credentials, backend)
+
+
+def _run_workers(argv: list[str], args: argparse.Namespace) -> int:
+    from sim_server.serve.workers import run_workers, worker_addresses
+
+    try:
+        addresses = worker_addresses(args.bind, args.workers)
     except ValueError as exc:
-        parser.error(str(exc))
-    credentials = load_credentials(parser, args)
-    if endpoint.scheme == "direct":
-        if credentials is not None:
-            parser.error("direct:// has no CURVE: use tcp:// with --secret-key")
-        if not endpoint.is_loopback:
-            parser.error(
-                f"{args.bind}: direct:// binds loopback addresses only (no authentication); "
-                "use tcp:// with --secret-key across machines"
-            )
-    elif args.spin_us is not None:
-        parser.error("--spin-us applies to direct:// addresses only")
-    if not endpoint.is_loopback and credentials is None and not args.insecure:
-        parser.error(
-            f"{args.bind} is reachable from other machines: turn on authentication with "
-            "--secret-key (keys from `sim-server keygen`), bind a loopback address, or pass "
-            "--insecure on a trusted network"
-        )
-    if args.sumocfg is not None:
-        if not args.backend.startswith("sumo"):
-            parser.error(f"--sumocfg needs a SUMO backend, not --backend {args.backend}")
-        if not args.sumocfg.is_file():
-            parser.error(f"--sumocfg {args.sumocfg}: no such file")
-        if not args.ego_route:
-            parser.error("--sumocfg needs --ego-route (a route id defined in your route files)")
+        raise UsageError(f"--workers {args.workers}: {exc}") from exc
+    return run_workers(argv, addresses)
 
-    if args.workers < 1:
-        parser.error("--workers must be at least 1")
-    if args.workers > 1:
-        from sim_server.workers import run_workers
 
-        return run_workers(argv, args.bind, args.workers)
-
-    backend = make_backend(args)
+def serve(
+    args: argparse.Namespace,
+    endpoint: Endpoint,
+    credentials: ServerCredentials | None,
+    backend: Backend,
+) -> int:
+    """Bind, print the readiness line and serve until SIGTERM or SIGINT; 1 if it cannot bind."""
     session = Session(backend, args.max_frame_bytes, args.session_timeout)
     try:
         server: Server | DirectServer = (
@@ -281,7 +411,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.exit_with_parent:
         stop_with_parent(server)
     print(format_listening(server.endpoint), flush=True)
-    logging.getLogger("sim_server").info(
+    log = logging.getLogger("sim_server")
+    log.info(
         "backend %s %s, scenarios: %s; %s",
         backend.name,
         backend.version,
@@ -291,26 +422,12 @@ def main(argv: list[str] | None = None) -> int:
         else "no authentication",
     )
     server.serve()
-    logging.getLogger("sim_server").info("stopped")
+    log.info("stopped")
     return 0
 
 
 def _spin_us(args: argparse.Namespace) -> float:
     return DEFAULT_SPIN_US if args.spin_us is None else max(0.0, args.spin_us)
-
-
-def stop_with_parent(server: StopFlag, check_interval_s: float = 0.5) -> None:
-    """Stop `server` once this process's parent is gone (the process is re-parented)."""
-    parent = os.getppid()
-
-    def watch() -> None:
-        while not server.stopping.wait(check_interval_s):
-            if os.getppid() != parent:
-                logging.getLogger("sim_server").warning("parent %d is gone; stopping", parent)
-                server.stop()
-                return
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 if __name__ == "__main__":

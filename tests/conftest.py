@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_server import readiness
+from sim_server.serve import readiness
 
 READY_TIMEOUT_S = 60.0
 

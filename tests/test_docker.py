@@ -234,7 +234,7 @@ def service_image(name: str) -> str:
 
 
 def default_port() -> int:
-    from protocol.transport import DEFAULT_ADDRESS
+    from protocol.transport.endpoint import DEFAULT_ADDRESS
 
     return int(DEFAULT_ADDRESS.rsplit(":", 1)[1])
 
@@ -249,7 +249,7 @@ def parse_sim_server(argv: list[str]) -> Any:
 
 
 def parse_agent_client(argv: list[str]) -> Any:
-    from agent_client.cli import build_parser
+    from agent_client.cli.main import build_parser
 
     return build_parser().parse_args(argv)
 
@@ -356,7 +356,7 @@ def test_server_image_prebuilds_the_scenarios() -> None:
 
 
 def test_prebuild_script_builds_every_builtin_scenario(tmp_path: Path) -> None:
-    from sim_server.scenarios import BUILTIN_SCENARIOS, find_netconvert
+    from sim_server.backends.sumo.scenarios import BUILTIN_SCENARIOS, find_netconvert
 
     try:
         find_netconvert()
@@ -456,7 +456,7 @@ def test_compose_network_is_private_and_shared() -> None:
 
 
 def test_compose_servers_bind_their_container_address_with_authentication() -> None:
-    from protocol.transport import parse_endpoint
+    from protocol.transport.endpoint import parse_endpoint
 
     args = parse_sim_server(SERVICES["server"]["command"])
     endpoint = parse_endpoint(args.bind)

@@ -7,7 +7,7 @@ from typing import Any
 
 import yaml
 
-from protocol.security import CLIENT_SECRET_ENV, SERVER_KEY_ENV
+from protocol.transport.security import CLIENT_SECRET_ENV, SERVER_KEY_ENV
 from tests.test_docker import default_port, parse_agent_client, parse_sim_server
 
 MANIFEST = Path(__file__).resolve().parents[1] / "docker" / "k8s" / "av-bridge.yaml"

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import zmq
 
-from agent_client.connection import Connection
-from agent_client.remote_env import RemoteEnv
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.transport import ZmqChannel
 from protocol.messages import Error, Hello, Observation, Reset, Step
 from protocol.version import PROTOCOL_VERSION
 from tests.conftest import RunningServer
@@ -31,7 +31,7 @@ BAD_FRAMES = [
 def test_every_bad_request_gets_its_own_error_and_the_server_goes_on(
     sumo_server: RunningServer,
 ) -> None:
-    with Connection(sumo_server.address, timeout_s=10.0) as connection:
+    with ZmqChannel(sumo_server.address, timeout_s=10.0) as connection:
         connection.request(Hello(PROTOCOL_VERSION))
         codes = []
         for frame, expected in BAD_FRAMES:

@@ -15,7 +15,7 @@ pytestmark = pytest.mark.sumo
 
 def test_agent_client_drive_prints_one_json_object_per_episode(sumo_server: RunningServer) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "drive", "--server", sumo_server.address,
+        [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", sumo_server.address,
          "--scenario", "cf", "--policy", "idm", "--episodes", "2", "--seed", "5", "--json"],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
@@ -33,7 +33,7 @@ def test_agent_client_drive_prints_one_json_object_per_episode(sumo_server: Runn
 
 def test_agent_client_drive_human_summary(sumo_server: RunningServer) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "drive", "--server", sumo_server.address,
+        [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", sumo_server.address,
          "--episodes", "1", "--option", "max_episode_time=5"],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
@@ -44,7 +44,7 @@ def test_agent_client_drive_human_summary(sumo_server: RunningServer) -> None:
 
 def test_agent_client_reports_an_unreachable_server_clearly() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "drive", "--server", "tcp://127.0.0.1:1",
+        [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", "tcp://127.0.0.1:1",
          "--timeout", "0.5"],
         capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip
@@ -81,7 +81,7 @@ def test_sim_server_serves_ipc_and_removes_its_socket_file(tmp_path: object) -> 
         address = wait_for_line(process, "listening on ", 30)
         assert address == f"ipc://{path}"
         assert path.exists()
-        from agent_client.remote_env import RemoteEnv
+        from agent_client.envs.remote_env import RemoteEnv
 
         env = RemoteEnv(address, "cf", reward=lambda p, o, d: 0.0)
         env.reset(seed=1)

@@ -8,17 +8,17 @@ import sys
 
 import pytest
 
-from agent_client.conformance import PASS, run_checks
-from agent_client.connection import Connection
+from agent_client.conformance.checks import PASS, run_checks
+from agent_client.transport import ZmqChannel
 from protocol.messages import Close, Hello, Observation, Reset
 from protocol.version import PROTOCOL_VERSION
-from tests.agent_client.test_conformance import CHECKS
+from tests.agent_client.conformance.test_checks import CHECKS
 from tests.conftest import RunningServer, sim_server
 
 
 def assert_free(address: str) -> None:
     """Another client can start an episode right away: the kit said goodbye."""
-    with Connection(address, timeout_s=30.0) as connection:
+    with ZmqChannel(address, timeout_s=30.0) as connection:
         connection.request(Hello(PROTOCOL_VERSION))
         assert isinstance(connection.request(Reset("cf", 1), timeout_s=120.0), Observation)
         connection.request(Close())
@@ -38,7 +38,7 @@ def test_the_sumo_server_conforms(sumo_server: RunningServer) -> None:
 @pytest.mark.sumo
 def test_check_command_against_the_sumo_server(sumo_server: RunningServer) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "check", "--server", sumo_server.address,
+        [sys.executable, "-m", "agent_client.cli.main", "check", "--server", sumo_server.address,
          "--json", "--timeout", "30"],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
@@ -52,7 +52,7 @@ def test_check_command_against_the_sumo_server(sumo_server: RunningServer) -> No
 def test_the_fake_backend_conforms() -> None:
     with sim_server("--backend", "fake") as server:
         result = subprocess.run(
-            [sys.executable, "-m", "agent_client.cli", "check", "--server", server.address],
+            [sys.executable, "-m", "agent_client.cli.main", "check", "--server", server.address],
             capture_output=True, text=True, timeout=120, check=False,
         )  # fmt: skip
         assert result.returncode == 0, result.stdout + result.stderr
@@ -62,7 +62,7 @@ def test_the_fake_backend_conforms() -> None:
 
 def test_check_command_reports_an_unreachable_server() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "check", "--server", "tcp://127.0.0.1:1",
+        [sys.executable, "-m", "agent_client.cli.main", "check", "--server", "tcp://127.0.0.1:1",
          "--timeout", "0.5"],
         capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip

@@ -13,15 +13,16 @@ from pathlib import Path
 
 import pytest
 
-from agent_client.conformance import PASS, run_checks
-from agent_client.connection import ServerError, ServerLost, ServerTimeout, connect
-from agent_client.direct_connection import DirectConnection
-from agent_client.idm import IDMDriver
+from agent_client.conformance.checks import PASS, run_checks
+from agent_client.drivers.idm import IDMDriver
+from agent_client.errors import ServerError, ServerLost, ServerTimeout
+from agent_client.transport import connect
+from agent_client.transport.direct import DirectChannel
 from protocol.codec import decode_reply, encode
-from protocol.direct import LENGTH, frame, preamble
 from protocol.messages import Close, Error, Hello, Observation, Reset, Step, Welcome
+from protocol.transport.direct import LENGTH, frame, preamble
 from protocol.version import PROTOCOL_VERSION
-from tests.agent_client.test_conformance import CHECKS
+from tests.agent_client.conformance.test_checks import CHECKS
 from tests.conftest import sim_server
 
 DIRECT = "direct://127.0.0.1:0"
@@ -66,9 +67,9 @@ def test_the_sumo_server_conforms_over_direct(scenario_cache: Path) -> None:
         )
 
 
-def owner_with_an_episode(address: str) -> DirectConnection:
+def owner_with_an_episode(address: str) -> DirectChannel:
     """A client that said hello and reset `cf`: the simulator's owner."""
-    owner = DirectConnection(address, timeout_s=10.0)
+    owner = DirectChannel(address, timeout_s=10.0)
     owner.hello()
     owner.request(Reset("cf", 1))
     return owner
@@ -76,7 +77,7 @@ def owner_with_an_episode(address: str) -> DirectConnection:
 
 def test_a_lost_reply_is_retried_on_a_fresh_connection_without_advancing_twice() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        channel = DirectConnection(server.address, timeout_s=10.0)
+        channel = DirectChannel(server.address, timeout_s=10.0)
         channel.hello()
         channel.request(Reset("cf", 1))
         first = channel.request(Step(1, 0.5))
@@ -93,7 +94,7 @@ def test_a_lost_reply_is_retried_on_a_fresh_connection_without_advancing_twice()
         channel.close()
 
 
-def hello_when_free(channel: DirectConnection, within_s: float) -> float:
+def hello_when_free(channel: DirectChannel, within_s: float) -> float:
     """Say hello until it is not `busy`; the seconds it took."""
     started = time.monotonic()
     while True:
@@ -109,7 +110,7 @@ def hello_when_free(channel: DirectConnection, within_s: float) -> float:
 def test_a_second_client_is_busy_and_takes_over_once_the_first_is_gone() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
         owner = owner_with_an_episode(server.address)
-        other = DirectConnection(server.address, timeout_s=10.0)
+        other = DirectChannel(server.address, timeout_s=10.0)
         with pytest.raises(ServerError) as refused:
             other.hello()
         assert refused.value.code == "busy"
@@ -124,12 +125,12 @@ def test_a_reconnecting_owner_replaces_its_open_connection_and_keeps_the_simulat
         step_1 = owner.request(Step(1, 0.5))
         old_socket = owner._sock
         assert old_socket is not None
-        again = DirectConnection(server.address, timeout_s=10.0)
+        again = DirectChannel(server.address, timeout_s=10.0)
         again.routing_id = owner.routing_id  # the same client on a fresh connection
         assert again.request(Step(1, 0.5)) == step_1  # the cached reply: the step did not repeat
         old_socket.settimeout(5.0)
         assert old_socket.recv(1) == b""  # the server closed the replaced connection
-        with DirectConnection(server.address, timeout_s=10.0) as stranger:
+        with DirectChannel(server.address, timeout_s=10.0) as stranger:
             with pytest.raises(ServerError) as refused:
                 stranger.hello()
             assert refused.value.code == "busy"  # the handover did not free the simulator
@@ -142,11 +143,11 @@ def test_a_closing_stranger_does_not_free_the_owners_simulator() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
         owner = owner_with_an_episode(server.address)
         with (
-            DirectConnection(server.address, timeout_s=10.0) as stranger,
+            DirectChannel(server.address, timeout_s=10.0) as stranger,
             pytest.raises(ServerError),
         ):
             stranger.hello()
-        with DirectConnection(server.address, timeout_s=10.0) as third:
+        with DirectChannel(server.address, timeout_s=10.0) as third:
             with pytest.raises(ServerError) as refused:
                 third.hello()
             assert refused.value.code == "busy"
@@ -185,7 +186,7 @@ def test_a_client_that_never_reads_cannot_stall_the_owner() -> None:
 
 def test_unread_replies_beyond_the_cap_close_that_connection() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        with DirectConnection(server.address, timeout_s=10.0) as first:
+        with DirectChannel(server.address, timeout_s=10.0) as first:
             welcome_bytes = len(frame(encode(first.hello())))
             first.request(Close())
         assert 3000 * welcome_bytes > 2 * 1024 * 1024
@@ -194,7 +195,7 @@ def test_unread_replies_beyond_the_cap_close_that_connection() -> None:
         with socket.create_connection((host, int(port)), timeout=10.0) as greedy:
             greedy.sendall(preamble(b"greedy") + flood)
             assert read_until_closed(greedy) < 3000 * welcome_bytes  # cut off, not all answered
-        with DirectConnection(server.address, timeout_s=10.0) as channel:
+        with DirectChannel(server.address, timeout_s=10.0) as channel:
             assert hello_when_free(channel, 5.0) < 1.0  # the greedy client's session is gone
 
 
@@ -224,31 +225,31 @@ def test_a_request_waits_for_a_server_that_is_still_starting(tmp_path: Path) -> 
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    channel = DirectConnection(f"direct://127.0.0.1:{port}", timeout_s=30.0)
+    channel = DirectChannel(f"direct://127.0.0.1:{port}", timeout_s=30.0)
     channel.send(Hello(PROTOCOL_VERSION, "early"))  # nobody listens yet: kept for later
     with sim_server("--backend", "fake", bind=f"direct://127.0.0.1:{port}"):
         assert isinstance(channel.receive(), Welcome)
     channel.close()
-    lonely = DirectConnection(f"direct://127.0.0.1:{port}", timeout_s=0.3)
+    lonely = DirectChannel(f"direct://127.0.0.1:{port}", timeout_s=0.3)
     with pytest.raises(ServerTimeout, match="cannot connect"):
         lonely.hello()
 
 
 def test_both_ends_refuse_non_loopback_addresses() -> None:
-    from sim_server.direct_server import DirectServer
-    from sim_server.fake_backend import FakeBackend
-    from sim_server.server import Session
+    from sim_server.backends.fake import FakeBackend
+    from sim_server.serve.direct import DirectServer
+    from sim_server.session import Session
 
     session = Session(FakeBackend())
     with pytest.raises(ValueError, match="loopback"):
         DirectServer(session, "direct://0.0.0.0:0")
     with pytest.raises(ValueError, match="one machine only"):
-        DirectConnection("direct://192.0.2.1:5556")
+        DirectChannel("direct://192.0.2.1:5556")
 
 
 def test_a_killed_server_is_reported_at_once(tmp_path: Path) -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        channel = DirectConnection(server.address, timeout_s=30.0)
+        channel = DirectChannel(server.address, timeout_s=30.0)
         channel.hello()
         channel.request(Reset("cf", 1))
         channel.send(Step(1, 0.0))
@@ -264,7 +265,7 @@ def test_a_killed_server_is_reported_at_once(tmp_path: Path) -> None:
 
 def test_a_frozen_server_times_out_within_the_deadline() -> None:
     with sim_server("--backend", "fake", bind=DIRECT) as server:
-        channel = DirectConnection(server.address, timeout_s=10.0)
+        channel = DirectChannel(server.address, timeout_s=10.0)
         channel.hello()
         os.kill(server.process.pid, signal.SIGSTOP)
         try:
@@ -300,7 +301,7 @@ def test_hostile_bytes_close_that_connection_and_the_server_goes_on() -> None:
         error = decode_reply(answers[2][LENGTH.size :])
         assert size == len(answers[2]) - LENGTH.size
         assert isinstance(error, Error) and error.code == "decode_error"
-        with DirectConnection(server.address, timeout_s=10.0) as channel:
+        with DirectChannel(server.address, timeout_s=10.0) as channel:
             assert isinstance(channel.hello(), Welcome)
             assert isinstance(channel.request(Reset("cf", 2)), Observation)
         assert server.process.poll() is None
@@ -309,7 +310,7 @@ def test_hostile_bytes_close_that_connection_and_the_server_goes_on() -> None:
 def test_the_error_reply_to_garbage_is_a_protocol_error() -> None:
     with (
         sim_server("--backend", "fake", bind=DIRECT) as server,
-        DirectConnection(server.address, timeout_s=10.0) as channel,
+        DirectChannel(server.address, timeout_s=10.0) as channel,
     ):
         reply = channel.exchange_raw(b"\xc1")
         assert reply.TYPE == "error"
@@ -333,7 +334,7 @@ def test_direct_usage_errors(arguments: list[str], complaint: str) -> None:
 
 
 def test_keys_are_refused_for_direct() -> None:
-    from protocol.security import ClientCredentials
+    from protocol.transport.security import ClientCredentials
 
     fake_keys = ClientCredentials.__new__(ClientCredentials)
     with pytest.raises(ValueError, match="no CURVE"):
@@ -344,7 +345,7 @@ def test_keys_are_refused_for_direct() -> None:
 def test_agent_client_drives_over_direct(scenario_cache: Path) -> None:
     with sim_server("--backend", "sumo", cache_dir=scenario_cache, bind=DIRECT) as server:
         result = subprocess.run(
-            [sys.executable, "-m", "agent_client.cli", "drive", "--server", server.address,
+            [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", server.address,
              "--scenario", "cflc", "--policy", "idm", "--episodes", "1", "--seed", "2", "--json"],
             capture_output=True, text=True, timeout=300, check=False,
         )  # fmt: skip

@@ -8,10 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from agent_client.cli import load_driver, main
-from agent_client.drive import run_episode
-from agent_client.idm import IDMDriver
-from agent_client.remote_env import RemoteEnv
+from agent_client.cli.main import main
+from agent_client.drivers.episode import run_episode
+from agent_client.drivers.idm import IDMDriver
+from agent_client.drivers.spec import load_driver
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.evaluation.metrics import episode_summary
 from tests.conftest import RunningServer
 
 pytestmark = [pytest.mark.sumo, pytest.mark.slow]
@@ -19,9 +21,9 @@ pytestmark = [pytest.mark.sumo, pytest.mark.slow]
 
 def tiny_policy(path: Path, features: str, lane_actions: int) -> Path:
     """An untrained policy file, as `agent-client train` would write one."""
-    from agent_client.ddpg import Agent
-    from agent_client.features import FeatureMap
-    from agent_client.policy import ActionScale, save_policy
+    from agent_client.drivers.policy import ActionScale, save_policy
+    from agent_client.rl.features import FeatureMap
+    from agent_client.rl.td3 import Agent
 
     save_policy(path, Agent(FeatureMap(features).dim, lane_actions), features, ActionScale(-6, 3))
     return path
@@ -64,7 +66,7 @@ def test_calibrate_idm_writes_parameters_that_drive(
     assert driver.params.v0 == pytest.approx(document["params"]["v0"])
     env = RemoteEnv(sumo_server.address, "cf", max_episode_time=20.0)
     try:
-        summary = run_episode(env, driver, seed=3)
+        summary = episode_summary(run_episode(env, driver, seed=3))
     finally:
         env.close()
     assert summary.steps > 100 and summary.collisions == 0

@@ -21,8 +21,9 @@ import numpy as np
 import pytest
 import zmq
 
-from agent_client.connection import Connection, ServerError, ServerLost
-from agent_client.remote_env import RemoteEnv
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import ServerError, ServerLost
+from agent_client.transport import ZmqChannel
 from protocol.codec import encode
 from protocol.messages import Close, Error, Welcome
 from tests.conftest import sim_server, wait_for_line
@@ -31,7 +32,7 @@ from tests.conftest import sim_server, wait_for_line
 # gradient update does: its main thread is busy, ZeroMQ's I/O thread still answers heartbeats.
 LEARNER = """
 import sys, time
-from agent_client.remote_env import RemoteEnv
+from agent_client.envs.remote_env import RemoteEnv
 env = RemoteEnv(sys.argv[1], "cf", reward=lambda *_: 0.0)
 env.reset(seed=1)
 for _ in range(3):
@@ -61,7 +62,7 @@ def learner(address: str) -> Iterator[subprocess.Popen[str]]:
 def seconds_until_served(address: str, limit_s: float) -> float:
     """How long until a new client's hello is welcomed (retrying while the server is busy)."""
     started = time.monotonic()
-    with Connection(address, timeout_s=limit_s) as connection:
+    with ZmqChannel(address, timeout_s=limit_s) as connection:
         while True:
             try:
                 assert isinstance(connection.hello(), Welcome)
@@ -73,7 +74,7 @@ def seconds_until_served(address: str, limit_s: float) -> float:
 
 
 def is_busy(address: str) -> bool:
-    with Connection(address, timeout_s=5.0) as connection:
+    with ZmqChannel(address, timeout_s=5.0) as connection:
         try:
             connection.hello()
         except ServerError as exc:
@@ -93,9 +94,9 @@ def test_a_killed_learner_frees_the_server_at_once() -> None:
 # news of the closed connection together, in either order.
 DYING_MID_REQUEST = """
 import os, signal, sys
-from agent_client.connection import Connection
+from agent_client.transport import ZmqChannel
 from protocol.messages import Reset, Step
-connection = Connection(sys.argv[1], timeout_s=30.0)
+connection = ZmqChannel(sys.argv[1], timeout_s=30.0)
 connection.hello()
 connection.request(Reset("cf", 1))
 for seq in range(1, 4):
@@ -113,7 +114,7 @@ def test_a_learner_killed_mid_request_frees_the_server_every_time() -> None:
                 timeout=60, check=False,
             )  # fmt: skip
             assert seconds_until_served(server.address, 10.0) < 3.0
-            with Connection(server.address, timeout_s=10.0) as connection:
+            with ZmqChannel(server.address, timeout_s=10.0) as connection:
                 connection.hello()
                 connection.request(Close())  # free it for the next doomed learner
 
@@ -163,7 +164,7 @@ def test_a_slow_step_is_not_a_lost_server() -> None:
     thread = threading.Thread(target=slow_server, daemon=True)
     thread.start()
     try:
-        with Connection(address, timeout_s=30.0, heartbeat_timeout_s=1.0) as connection:
+        with ZmqChannel(address, timeout_s=30.0, heartbeat_timeout_s=1.0) as connection:
             started = time.monotonic()
             reply = connection.exchange(Close())
             assert isinstance(reply, Error) and reply.message == "slow, but alive"
@@ -199,9 +200,9 @@ def test_training_survives_a_server_restart_and_keeps_its_progress(tmp_path: Pat
     address = f"tcp://127.0.0.1:{free_port()}"
     out = tmp_path / "run"
     command = [
-        sys.executable, "-m", "agent_client.cli", "train", "--server", address,
+        sys.executable, "-m", "agent_client.cli.main", "train", "--server", address,
         "--out", str(out), "--episodes", "6", "--quiet", "--retry-for", "60",
-        "--set", "eval_every=0", "--set", "ddpg.learning_starts=50", "--set", "checkpoint_every=1",
+        "--set", "eval_every=0", "--set", "learner.learning_starts=50", "--set", "checkpoint_every=1",
         "--option", "length=300.0",
     ]  # fmt: skip
     with sim_server("--backend", "fake", bind=address) as first:
@@ -227,7 +228,7 @@ def test_training_survives_a_server_restart_and_keeps_its_progress(tmp_path: Pat
     assert [int(r["episode"]) for r in logged] == list(range(1, 7))
     steps = [int(r["global_step"]) for r in logged]
     assert steps == sorted(steps) and len(set(steps)) == len(steps)
-    from agent_client.checkpoint import load_checkpoint
+    from agent_client.rl.checkpoint import load_checkpoint
 
     progress = load_checkpoint(out / "checkpoint.pt")["progress"]
     assert progress["reconnects"] >= 1

@@ -8,7 +8,7 @@ every reply; a frame that the shared codec refuses must be refused with the code
 Afterwards the server serves a normal episode, is alive and its memory has not grown.
 
 Client side: a malicious server thread answers with garbage, wrong types, NaN, huge or
-multi-part frames, pickles or nothing; `Connection` and `RemoteEnv` raise `MalformedReply`,
+multi-part frames, pickles or nothing; `ZmqChannel` and `RemoteEnv` raise `MalformedReply`,
 `ServerError` or `ServerTimeout`, and never hang.
 """
 
@@ -31,15 +31,15 @@ import zmq
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from agent_client.connection import (
-    Connection,
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import (
     MalformedReply,
     ServerError,
     ServerLost,
     ServerTimeout,
     ServerUnavailable,
 )
-from agent_client.remote_env import RemoteEnv
+from agent_client.transport import ZmqChannel
 from protocol.codec import decode_reply, decode_request, encode
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import (
@@ -54,7 +54,7 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.schema import OBSERVATION_FIELDS, Flattener
-from protocol.transport import SOCKET_MAX_BYTES
+from protocol.transport.zeromq import SOCKET_MAX_BYTES
 from protocol.version import PROTOCOL_VERSION
 from tests.conftest import RunningServer, sim_server
 
@@ -367,55 +367,81 @@ def nested(depth: int, inner: bytes, as_map: bool) -> bytes:
     return (b"\x81\xa1k" if as_map else b"\x91") * depth + inner
 
 
-@st.composite
-def hostile_input(draw: st.DrawFn, model: SessionModel) -> list[bytes]:
-    """The parts of one ZeroMQ message: usually one frame; the codec judges most of them."""
-    kind = draw(
-        st.sampled_from(
-            ["valid"] * 8 + ["bytes", "truncated", "trailing", "nested", "oversized",
-             "wrong_type", "number", "unknown_type", "multipart", "odd_encoding"]
-        )
-    )  # fmt: skip
-    request = draw(valid_request(model))
-    frame = pack(request)
-    if kind == "valid":
-        return [frame]
-    if kind == "bytes":
-        return [draw(st.binary(max_size=300))]
-    if kind == "truncated":
-        return [frame[: draw(st.integers(0, len(frame) - 1))]]
-    if kind == "trailing":
-        return [frame + draw(st.binary(min_size=1, max_size=8))]
-    if kind == "nested":
-        depth = draw(st.sampled_from([1, 10, 100, 1000, 5000, 30_000]))
-        body = nested(depth, b"\x01", draw(st.booleans()))
-        key = draw(st.sampled_from(["protocol", "x", "options", "acceleration"]))
-        head = pack({k: v for k, v in request.items() if k != key})
-        count = len(msgpack.unpackb(head)) + 1
-        return [bytes([0x80 | count]) + head[1:] + pack(key) + body]
-    if kind == "oversized":
-        limit = model.welcome.max_frame_bytes
-        size = draw(st.sampled_from([limit + 1, limit + 1000, 2 * limit, 1024 * 1024]))
-        if draw(st.booleans()):
-            return [b"\xc1" * size]
-        padded = pack({**request, "padding": ""})
-        return [pack({**request, "padding": "x" * (size - len(padded) + 2)})]
-    if kind == "wrong_type":
-        key = draw(st.sampled_from([*request, "type"]))
-        return [pack({**request, key: draw(ANY_VALUE)})]
-    if kind == "number":
-        value = draw(st.sampled_from(EXTREME_INTS + EXTREME_FLOATS))
-        if request["type"] == "reset":
-            return [pack({**request, "seed": value})]
-        if request["type"] == "hello":
-            return [pack({**request, "protocol": [value, 0]})]
-        key = draw(st.sampled_from(["seq", "acceleration", "lane_change"]))
-        return [pack({"type": "step", "seq": 1, "acceleration": 0.0, key: value})]
-    if kind == "unknown_type":
-        name = draw(st.one_of(st.text(max_size=12), st.sampled_from(["welcome", "observation", "error", "bye", "HELLO", "x" * 5000])))  # fmt: skip
-        return [pack({**request, "type": name})]
-    if kind == "multipart":
-        return draw(st.lists(st.binary(max_size=20), min_size=0, max_size=3).filter(lambda p: len(p) != 1))  # fmt: skip
+Frames = list[bytes]
+HostileKind = Callable[[st.DrawFn, dict[str, Any], bytes, "SessionModel"], Frames]
+
+
+def _raw_bytes(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
+    return [draw(st.binary(max_size=300))]
+
+
+def _truncated(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
+    return [frame[: draw(st.integers(0, len(frame) - 1))]]
+
+
+def _trailing(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
+    return [frame + draw(st.binary(min_size=1, max_size=8))]
+
+
+def _nested(draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel) -> Frames:
+    depth = draw(st.sampled_from([1, 10, 100, 1000, 5000, 30_000]))
+    body = nested(depth, b"\x01", draw(st.booleans()))
+    key = draw(st.sampled_from(["protocol", "x", "options", "acceleration"]))
+    head = pack({k: v for k, v in request.items() if k != key})
+    count = len(msgpack.unpackb(head)) + 1
+    return [bytes([0x80 | count]) + head[1:] + pack(key) + body]
+
+
+def _oversized(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
+    limit = model.welcome.max_frame_bytes
+    size = draw(st.sampled_from([limit + 1, limit + 1000, 2 * limit, 1024 * 1024]))
+    if draw(st.booleans()):
+        return [b"\xc1" * size]
+    padded = pack({**request, "padding": ""})
+    return [pack({**request, "padding": "x" * (size - len(padded) + 2)})]
+
+
+def _wrong_type(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
+    key = draw(st.sampled_from([*request, "type"]))
+    return [pack({**request, key: draw(ANY_VALUE)})]
+
+
+def _number(draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel) -> Frames:
+    value = draw(st.sampled_from(EXTREME_INTS + EXTREME_FLOATS))
+    if request["type"] == "reset":
+        return [pack({**request, "seed": value})]
+    if request["type"] == "hello":
+        return [pack({**request, "protocol": [value, 0]})]
+    key = draw(st.sampled_from(["seq", "acceleration", "lane_change"]))
+    return [pack({"type": "step", "seq": 1, "acceleration": 0.0, key: value})]
+
+
+def _unknown_type(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
+    name = draw(st.one_of(st.text(max_size=12), st.sampled_from(["welcome", "observation", "error", "bye", "HELLO", "x" * 5000])))  # fmt: skip
+    return [pack({**request, "type": name})]
+
+
+def _multipart(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
+    return draw(st.lists(st.binary(max_size=20), min_size=0, max_size=3).filter(lambda p: len(p) != 1))  # fmt: skip
+
+
+def _odd_encoding(
+    draw: st.DrawFn, request: dict[str, Any], frame: bytes, model: SessionModel
+) -> Frames:
     choice = draw(st.integers(0, 2))
     if choice == 0:
         return [pack({"type": request["type"].encode(), **{k: v for k, v in request.items() if k != "type"}})]  # fmt: skip
@@ -424,11 +450,36 @@ def hostile_input(draw: st.DrawFn, model: SessionModel) -> list[bytes]:
     return [pack({**request, "type": request["type"], "protocol": msgpack.ExtType(1, b"\x01")})]
 
 
+HOSTILE_KINDS: dict[str, HostileKind] = {
+    "bytes": _raw_bytes,
+    "truncated": _truncated,
+    "trailing": _trailing,
+    "nested": _nested,
+    "oversized": _oversized,
+    "wrong_type": _wrong_type,
+    "number": _number,
+    "unknown_type": _unknown_type,
+    "multipart": _multipart,
+    "odd_encoding": _odd_encoding,
+}
+
+
+@st.composite
+def hostile_input(draw: st.DrawFn, model: SessionModel) -> Frames:
+    """The parts of one ZeroMQ message: usually one frame; the codec judges most of them."""
+    kind = draw(st.sampled_from(["valid"] * 8 + list(HOSTILE_KINDS)))
+    request = draw(valid_request(model))
+    frame = pack(request)
+    if kind == "valid":
+        return [frame]
+    return HOSTILE_KINDS[kind](draw, request, frame, model)
+
+
 # --------------------------------------------------------------------------- server fuzz
 
 
 def welcome_of(address: str) -> Welcome:
-    with Connection(address, timeout_s=30.0) as connection:
+    with ZmqChannel(address, timeout_s=30.0) as connection:
         welcome = connection.hello()
         connection.request(Close())
     return welcome
@@ -436,7 +487,7 @@ def welcome_of(address: str) -> Welcome:
 
 def normal_episode(address: str, scenario: str) -> None:
     """Hello, reset, 20 steps, close: the server still serves a client normally."""
-    with Connection(address, timeout_s=30.0) as connection:
+    with ZmqChannel(address, timeout_s=30.0) as connection:
         connection.hello()
         obs = connection.request(Reset(scenario, 5), timeout_s=120.0)
         assert isinstance(obs, Observation) and obs.seq == 0
@@ -635,7 +686,7 @@ def evil() -> Iterator[EvilServer]:
 
 def _fake_frames() -> tuple[bytes, bytes]:
     """A correct welcome and first observation, as the evil server's templates."""
-    from sim_server.fake_backend import FAKE_OPTIONS, FakeBackend
+    from sim_server.backends.fake import FAKE_OPTIONS, FakeBackend
 
     backend = FakeBackend()
     welcome = Welcome(
@@ -730,7 +781,7 @@ def call_client(target: str, evil: EvilServer, reply: list[bytes] | None) -> str
     """One client call meets the evil reply: it returns or raises a clear error (the outcome)."""
     if target in ("hello", "step"):
         evil.play(reply)
-        with Connection(evil.address, timeout_s=CLIENT_TIMEOUT_S) as connection:
+        with ZmqChannel(evil.address, timeout_s=CLIENT_TIMEOUT_S) as connection:
             try:
                 if target == "hello":
                     connection.hello()
@@ -812,7 +863,7 @@ def is_schema_fault(reply: list[bytes]) -> bool:
 def test_a_pickle_reply_is_never_executed(evil: EvilServer) -> None:
     evil.play([pickle.dumps(Bomb())])
     with (
-        Connection(evil.address, timeout_s=CLIENT_TIMEOUT_S) as connection,
+        ZmqChannel(evil.address, timeout_s=CLIENT_TIMEOUT_S) as connection,
         pytest.raises(MalformedReply, match="not valid msgpack"),
     ):
         connection.hello()
@@ -821,7 +872,7 @@ def test_a_pickle_reply_is_never_executed(evil: EvilServer) -> None:
 
 def test_a_reply_over_the_socket_cap_is_a_lost_connection_not_a_crash(evil: EvilServer) -> None:
     evil.play([b"\x00" * (SOCKET_MAX_BYTES + 1)], [b"\x00" * (1024 * 1024 + 1)])
-    with Connection(evil.address, timeout_s=10.0) as connection:
+    with ZmqChannel(evil.address, timeout_s=10.0) as connection:
         with pytest.raises(ServerLost):
             connection.hello()  # ZeroMQ drops the frame and the connection
         with pytest.raises(MalformedReply, match="exceeds the limit"):
@@ -830,7 +881,7 @@ def test_a_reply_over_the_socket_cap_is_a_lost_connection_not_a_crash(evil: Evil
 
 def test_a_multipart_reply_is_malformed(evil: EvilServer) -> None:
     evil.play([WELCOME, b"extra"], [WELCOME])
-    with Connection(evil.address, timeout_s=CLIENT_TIMEOUT_S) as connection:
+    with ZmqChannel(evil.address, timeout_s=CLIENT_TIMEOUT_S) as connection:
         with pytest.raises(MalformedReply):
             connection.hello()
         assert isinstance(connection.hello(), Welcome)
@@ -846,14 +897,14 @@ def test_remote_env_refuses_a_bad_schema_with_malformed_reply(
     else:
         wire["action"]["acceleration_min"], wire["action"]["acceleration_max"] = 3.0, -6.0
     evil.play([pack(wire)])
-    connections: list[Connection] = []
+    connections: list[ZmqChannel] = []
 
-    class Tracked(Connection):
+    class Tracked(ZmqChannel):
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             connections.append(self)
 
-    monkeypatch.setattr("agent_client.connection.Connection", Tracked)  # what connect() builds
+    monkeypatch.setattr("agent_client.transport.ZmqChannel", Tracked)  # what connect() builds
     try:
         with pytest.raises(MalformedReply):
             RemoteEnv(evil.address, "cf", reward=zero_reward, timeout_s=CLIENT_TIMEOUT_S)
@@ -864,7 +915,7 @@ def test_remote_env_refuses_a_bad_schema_with_malformed_reply(
 
 
 def test_a_client_that_missed_a_reply_can_retry_its_step() -> None:
-    with sim_server("--backend", "fake") as server, Connection(server.address, 5.0) as connection:
+    with sim_server("--backend", "fake") as server, ZmqChannel(server.address, 5.0) as connection:
         connection.hello()
         connection.request(Reset("cf", 1, {"decision_interval": 1.0}))
         with pytest.raises(ServerTimeout):
@@ -878,7 +929,7 @@ def test_a_client_that_missed_a_reply_can_retry_its_step() -> None:
 
 
 def test_a_fresh_socket_of_the_same_client_keeps_the_session() -> None:
-    with sim_server("--backend", "fake") as server, Connection(server.address, 5.0) as connection:
+    with sim_server("--backend", "fake") as server, ZmqChannel(server.address, 5.0) as connection:
         connection.hello()
         connection.request(Reset("cf", 1))
         first = connection.request(Step(1, 0.0))

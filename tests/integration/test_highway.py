@@ -16,9 +16,9 @@ import pytest
 
 pytest.importorskip("highway_env")
 
-from agent_client.cli import main
-from agent_client.conformance import PASS, run_checks
-from agent_client.run_log import read_rows
+from agent_client.cli.main import main
+from agent_client.conformance.checks import PASS, run_checks
+from agent_client.training.run_log import read_rows
 from tests.conftest import RunningServer, sim_server
 
 pytestmark = pytest.mark.slow
@@ -38,7 +38,7 @@ def highway_server() -> Iterator[RunningServer]:
 
 def test_check_command_against_the_highway_server(highway_server: RunningServer) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "check", "--server", highway_server.address,
+        [sys.executable, "-m", "agent_client.cli.main", "check", "--server", highway_server.address,
          "--json", "--timeout", "60"],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
@@ -63,13 +63,13 @@ def train(server: str, out: Path, scenario: str, episodes: int, *extra: str) -> 
     leader-at-entry to the end of the road); `evaluate` below checks the ceiling via the bridge.
     """
     result = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "train", "--server", server, "--out", str(out),
+        [sys.executable, "-m", "agent_client.cli.main", "train", "--server", server, "--out", str(out),
          "--scenario", scenario, "--episodes", str(episodes), "--quiet",
          "--decision-interval", "1.0", "--option", "max_episode_time=30",
          "--option", "report_ceiling=false", "--option", "vehicles_count=8",
          "--option", "vehicles_behind=2",
          "--set", "eval_every=0", "--set", "checkpoint_every=1",
-         "--set", "ddpg.learning_starts=20", "--set", "ddpg.batch_size=16", *extra],
+         "--set", "learner.learning_starts=20", "--set", "learner.batch_size=16", *extra],
         capture_output=True, text=True, timeout=600, check=False,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from agent_client.connection import Connection, ServerError, ServerLost, ServerTimeout
-from agent_client.remote_env import RemoteEnv
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import ServerError, ServerLost, ServerTimeout
+from agent_client.transport import ZmqChannel
 from protocol.messages import Hello, Step, Welcome
 from tests.conftest import RunningServer
 
@@ -119,13 +120,13 @@ def test_a_second_client_is_told_the_server_is_busy(sumo_server: RunningServer) 
     env = RemoteEnv(sumo_server.address, "cf", reward=zero_reward)
     try:
         env.reset(seed=1)
-        with Connection(sumo_server.address, timeout_s=5.0) as other:
+        with ZmqChannel(sumo_server.address, timeout_s=5.0) as other:
             with pytest.raises(ServerError, match="busy"):
                 other.hello()
             with pytest.raises(ServerError, match="busy"):
                 other.request(Step(1, 0.0))
     finally:
         env.close()
-    with Connection(sumo_server.address, timeout_s=5.0) as other:
+    with ZmqChannel(sumo_server.address, timeout_s=5.0) as other:
         assert isinstance(other.request(Hello((1, 0))), Welcome)
         other.request(__import__("protocol").Close())

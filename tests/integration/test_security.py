@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from agent_client.connection import AuthenticationFailed, Connection
+from agent_client.errors import AuthenticationFailed
+from agent_client.transport import ZmqChannel
 from protocol.messages import Observation, Reset, Step, Welcome
-from protocol.security import ClientCredentials
+from protocol.transport.security import ClientCredentials
 from tests.conftest import sim_server
 
 
@@ -46,7 +47,7 @@ def test_keygen_writes_two_key_pairs_and_never_overwrites(keys: Path) -> None:
 def test_an_authorised_client_runs_an_episode(keys: Path) -> None:
     with (
         sim_server("--backend", "fake", "--secret-key", str(keys / "server.key_secret")) as server,
-        Connection(server.address, 5.0, credentials(keys)) as connection,
+        ZmqChannel(server.address, 5.0, credentials(keys)) as connection,
     ):
         assert isinstance(connection.hello(), Welcome)
         connection.request(Reset("cf", 1))
@@ -61,13 +62,13 @@ def test_clients_without_the_right_keys_are_refused_before_the_protocol(
     with sim_server("--backend", "fake", "--secret-key", str(keys / "server.key_secret")) as server:
         for who in (stranger, None):
             started = time.monotonic()
-            with Connection(server.address, 10.0, who) as connection:
+            with ZmqChannel(server.address, 10.0, who) as connection:
                 with pytest.raises(AuthenticationFailed):
                     connection.hello()
                 with pytest.raises(AuthenticationFailed):
                     connection.request(Step(1, 0.5))
             assert time.monotonic() - started < 5.0  # refused at once, not timed out
-        with Connection(server.address, 5.0, credentials(keys)) as connection:
+        with ZmqChannel(server.address, 5.0, credentials(keys)) as connection:
             assert isinstance(connection.hello(), Welcome)  # the server went on serving
 
 
@@ -82,7 +83,7 @@ def test_a_public_bind_needs_keys_or_insecure(keys: Path) -> None:
         bind="tcp://0.0.0.0:0",
     ) as server:  # fmt: skip
         port = server.address.rsplit(":", 1)[1]
-        with Connection(f"tcp://127.0.0.1:{port}", 5.0, credentials(keys)) as connection:
+        with ZmqChannel(f"tcp://127.0.0.1:{port}", 5.0, credentials(keys)) as connection:
             assert isinstance(connection.hello(), Welcome)
 
 
@@ -100,7 +101,7 @@ def test_bad_key_files_are_usage_errors(keys: Path, tmp_path: Path) -> None:
 def test_agent_client_takes_key_files(keys: Path) -> None:
     with sim_server("--backend", "fake", "--secret-key", str(keys / "server.key_secret")) as server:
         driven = subprocess.run(
-            [sys.executable, "-m", "agent_client.cli", "drive", "--server", server.address,
+            [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", server.address,
              "--episodes", "1", "--json", "--option", "length=300.0",
              "--server-key", str(keys / "server.key"),
              "--secret-key", str(keys / "client.key_secret")],
@@ -109,7 +110,7 @@ def test_agent_client_takes_key_files(keys: Path) -> None:
         assert driven.returncode == 0, driven.stderr
         assert json.loads(driven.stdout.splitlines()[0])["steps"] > 0
         refused = subprocess.run(
-            [sys.executable, "-m", "agent_client.cli", "drive", "--server", server.address,
+            [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", server.address,
              "--episodes", "1", "--timeout", "30"],
             capture_output=True, text=True, timeout=120, check=False,
         )  # fmt: skip

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent_client.config import TrainConfig, apply_overrides
-from agent_client.policy import PolicyDriver
-from agent_client.run_log import read_rows
-from agent_client.train import Trainer
+from agent_client.drivers.policy import PolicyDriver
+from agent_client.training.config import TrainConfig, apply_overrides
+from agent_client.training.run_log import read_rows
+from agent_client.training.trainer import Trainer
 from tests.conftest import RunningServer, sim_server
 
 pytestmark = [pytest.mark.sumo, pytest.mark.slow]
@@ -25,7 +25,7 @@ FAST = {
     "decision_interval": 1.0,
     "eval_every": 0,
     "checkpoint_every": 1,
-    "ddpg": {"learning_starts": 300, "batch_size": 64, "updates_per_step": 2.0},
+    "learner": {"learning_starts": 300, "batch_size": 64, "updates_per_step": 2.0},
 }
 
 
@@ -35,10 +35,13 @@ def fast_config(**changes: object) -> TrainConfig:
 
 def greedy_return(trainer: Trainer, seeds: range) -> float:
     """Mean return of the current greedy policy on `seeds` (reward of the run)."""
-    from agent_client.drive import run_episode
+    from agent_client.drivers.episode import run_episode
+    from agent_client.evaluation.metrics import episode_summary
 
     driver = PolicyDriver(trainer.agent.policy(), trainer.features, trainer.scale)
-    return float(np.mean([run_episode(trainer.env, driver, s).total_reward for s in seeds]))
+    return float(
+        np.mean([episode_summary(run_episode(trainer.env, driver, s)).total_reward for s in seeds])
+    )
 
 
 def test_a_short_run_improves_on_its_untrained_start(
@@ -56,16 +59,16 @@ def test_a_short_run_improves_on_its_untrained_start(
     assert after > before + 5.0, (before, after)
     rows = read_rows(tmp_path / "run" / "episodes.csv")
     assert [int(r["episode"]) for r in rows] == list(range(1, 61))
-    gamma = trainer.config.ddpg.gamma
+    gamma = trainer.config.learner.gamma
     assert all(float(r["q_upper_bound"]) == pytest.approx(1.0 / (1.0 - gamma)) for r in rows)
 
 
 def train_command(server: str, out: Path, *extra: str) -> list[str]:
     return [
-        sys.executable, "-m", "agent_client.cli", "train", "--server", server, "--out", str(out),
+        sys.executable, "-m", "agent_client.cli.main", "train", "--server", server, "--out", str(out),
         "--quiet", "--decision-interval", "1.0", "--set", "eval_every=0",
-        "--set", "checkpoint_every=1", "--set", "ddpg.learning_starts=200",
-        "--set", "ddpg.batch_size=64", *extra,
+        "--set", "checkpoint_every=1", "--set", "learner.learning_starts=200",
+        "--set", "learner.batch_size=64", *extra,
     ]  # fmt: skip
 
 
@@ -130,7 +133,7 @@ def test_sigkill_loses_at_most_the_episodes_since_the_last_checkpoint(
         finally:
             if process.poll() is None:
                 process.kill()
-    from agent_client.checkpoint import load_checkpoint
+    from agent_client.rl.checkpoint import load_checkpoint
 
     state = load_checkpoint(out / "checkpoint.pt")
     logged = len(read_rows(out / "episodes.csv"))
@@ -147,7 +150,7 @@ def test_the_saved_policy_reloads_and_drives(sumo_server: RunningServer, tmp_pat
     assert (out / "training.png").stat().st_size > 10_000
     assert json.loads((out / "config.json").read_text())["decision_interval"] == 1.0
     driven = subprocess.run(
-        [sys.executable, "-m", "agent_client.cli", "drive", "--server", sumo_server.address,
+        [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", sumo_server.address,
          "--policy", str(out / "policy.pt"), "--episodes", "1", "--json"],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip

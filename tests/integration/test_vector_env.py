@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent_client.config import TrainConfig, apply_overrides
-from agent_client.train import Trainer
-from agent_client.vector_env import RemoteVectorEnv
+from agent_client.envs.vector_env import RemoteVectorEnv
+from agent_client.training.config import TrainConfig, apply_overrides
+from agent_client.training.trainer import Trainer
 from tests.conftest import RunningServer, sim_server
 
 
@@ -57,7 +57,7 @@ def test_training_on_three_servers_fills_one_buffer(
     config = apply_overrides(
         TrainConfig(),
         {"episodes": 9, "eval_every": 0, "scenario_options": {"length": 300.0},
-         "ddpg": {"learning_starts": 100}},
+         "learner": {"learning_starts": 100}},
     )  # fmt: skip
     trainer = Trainer(config, [s.address for s in fake_servers], tmp_path)
     try:

@@ -8,9 +8,9 @@ import sys
 import time
 from pathlib import Path
 
-from agent_client.connection import Connection
+from agent_client.transport import ZmqChannel
 from protocol.messages import Welcome
-from sim_server.workers import without_options, worker_addresses
+from sim_server.serve.workers import without_options, worker_addresses
 from tests.conftest import wait_for_line
 
 
@@ -45,14 +45,14 @@ def test_workers_serve_and_a_killed_one_comes_back() -> None:
         addresses = [wait_for_line(supervisor, "listening on ", 60.0) for _ in range(2)]
         assert len(set(addresses)) == 2
         for address in addresses:
-            with Connection(address, 10.0) as connection:
+            with ZmqChannel(address, 10.0) as connection:
                 assert isinstance(connection.hello(), Welcome)
         workers = children(supervisor.pid)
         assert len(workers) == 2
         subprocess.run(["kill", "-9", str(workers[0])], check=True, timeout=10)
         # The supervisor restarts it on the same address: a hello there is answered again.
         for address in addresses:
-            with Connection(address, 30.0) as connection:
+            with ZmqChannel(address, 30.0) as connection:
                 assert isinstance(connection.hello(), Welcome)
         assert workers[0] not in children(supervisor.pid)
         assert len(children(supervisor.pid)) == 2

@@ -6,17 +6,27 @@ import msgpack
 import pytest
 
 from protocol.codec import decode_reply, encode
-from protocol.messages import Bye, Close, Error, Hello, Observation, Reset, Step, Welcome
+from protocol.messages import (
+    Bye,
+    Close,
+    Error,
+    Hello,
+    Message,
+    Observation,
+    Reset,
+    Step,
+    Welcome,
+)
 from protocol.version import PROTOCOL_VERSION
-from sim_server.backend import BackendError
-from sim_server.fake_backend import FakeBackend
-from sim_server.server import Session
+from sim_server.backends.fake import FakeBackend
+from sim_server.errors import BackendError
+from sim_server.session import Session
 
 PEER = b"peer-1"
 
 
-def ask(session: Session, message: object, peer: bytes = PEER, now: float = 0.0) -> object:
-    return decode_reply(session.handle(peer, encode(message), now))  # type: ignore[arg-type]
+def ask(session: Session, message: Message, peer: bytes = PEER, now: float = 0.0) -> Message:
+    return decode_reply(session.handle(peer, encode(message), now))
 
 
 def ask_raw(session: Session, frame: bytes, peer: bytes = PEER) -> object:
@@ -54,8 +64,9 @@ def test_handshake_announces_versions_schema_and_scenarios(session: Session) -> 
 def test_major_version_mismatch_is_refused_naming_both(session: Session) -> None:
     reply = ask(session, Hello((PROTOCOL_VERSION[0] + 1, 0)))
     assert error_code(reply) == "version_mismatch"
-    assert f"{PROTOCOL_VERSION[0] + 1}.0" in reply.message  # type: ignore[union-attr]
-    assert f"{PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]}" in reply.message  # type: ignore[union-attr]
+    assert isinstance(reply, Error)
+    assert f"{PROTOCOL_VERSION[0] + 1}.0" in reply.message
+    assert f"{PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]}" in reply.message
 
 
 def test_requests_before_hello_are_out_of_order(session: Session) -> None:
@@ -69,10 +80,9 @@ def test_step_before_reset_is_out_of_order(session: Session) -> None:
 
 
 def test_an_episode_runs_with_sequence_numbers(session: Session) -> None:
-    obs = started(session)
-    assert obs.seq == 0
+    assert started(session).seq == 0
     for seq in range(1, 4):
-        obs = ask(session, Step(seq, 0.5))  # type: ignore[assignment]
+        obs = ask(session, Step(seq, 0.5))
         assert isinstance(obs, Observation)
         assert obs.seq == seq
 
@@ -83,8 +93,9 @@ def test_a_repeated_step_is_answered_from_cache_without_advancing(session: Sessi
     again = session.handle(PEER, encode(Step(1, 1.0)), 0.0)
     assert first == again
     second = decode_reply(session.handle(PEER, encode(Step(2, 1.0)), 0.0))
-    assert isinstance(second, Observation)
-    assert second.time == pytest.approx(decode_reply(first).time + 0.1)  # type: ignore[union-attr]
+    once = decode_reply(first)
+    assert isinstance(second, Observation) and isinstance(once, Observation)
+    assert second.time == pytest.approx(once.time + 0.1)
 
 
 def test_a_skipped_sequence_number_is_refused(session: Session) -> None:
@@ -149,8 +160,9 @@ def test_a_finished_episode_refuses_further_steps_but_repeats_its_last_reply(
     seq, obs = 0, None
     while obs is None or not (obs.terminated or obs.truncated):
         seq += 1
-        obs = ask(session, Step(seq, 3.0))  # full throttle: crash or end of road
-        assert isinstance(obs, Observation)
+        reply = ask(session, Step(seq, 3.0))  # full throttle: crash or end of road
+        assert isinstance(reply, Observation)
+        obs = reply
     assert obs.reason in {"collision", "end_of_road"}
     assert obs.ceiling is not None
     assert ask(session, Step(seq, 3.0)) == obs

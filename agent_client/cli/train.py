@@ -1,0 +1,166 @@
+"""``agent-client train``: command-line front of `agent_client.training.trainer`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import deque
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from agent_client.cli.common import Commands, add_connection_arguments, existing_folder
+from protocol.transport.endpoint import DEFAULT_ADDRESS
+
+if TYPE_CHECKING:
+    from agent_client.training.config import TrainConfig
+
+
+def add_parser(commands: Commands) -> None:
+    train = commands.add_parser(
+        "train",
+        help="train a TD3 (or DDPG) driver through the bridge",
+        description="Train a driver through the bridge. Settings: defaults < --config FILE < "
+        "flags < --set KEY=VALUE. Every setting and its default: docs/learner.md.",
+    )
+    add_connection_arguments(train, several=True)
+    train.add_argument("--out", type=Path, help="run folder (default runs/SCENARIO-REWARD-SEED)")
+    train.add_argument("--reward", help="safe (default), ra1, ra2, ra3, ra4 or rlc")
+    train.add_argument("--episodes", type=int, help="training episodes (default 300)")
+    train.add_argument(
+        "--algo", choices=("ddpg", "td3"), help="learner (default td3: DDPG with its three fixes)"
+    )
+    train.add_argument("--seed", type=int, help="seed (default 0)")
+    train.add_argument(
+        "--pretrain-idm", action="store_true", default=None, help="behaviour-clone IDM first"
+    )
+    train.add_argument("--decision-interval", type=float, help="s per decision (default 0.1)")
+    train.add_argument("--config", type=Path, help="TOML (or JSON) file of settings")
+    train.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any setting, e.g. --set eval_every=5 --set learner.actor_lr=3e-4 (repeatable)",
+    )
+    train.add_argument(
+        "--stop-when-converged",
+        action="store_true",
+        default=None,
+        help="stop after 3 evaluations in a row meet every target",
+    )
+    train.add_argument("--resume", type=Path, metavar="RUN", help="continue runs/NAME")
+    train.add_argument(
+        "--retry-for",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="when the server is lost, wait this long for it (or a restarted one) to answer, "
+        "then continue with a new episode; 0 (default) stops the run with a checkpoint",
+    )
+    train.add_argument("--quiet", action="store_true", help="no progress bar")
+    train.set_defaults(run=run)
+
+
+def build_config(args: argparse.Namespace) -> TrainConfig:
+    from agent_client.training.config import (
+        TrainConfig,
+        apply_overrides,
+        load_config_file,
+        parse_assignment,
+    )
+
+    config = TrainConfig()
+    if args.config is not None:
+        config = apply_overrides(config, load_config_file(args.config))
+    flags: dict[str, Any] = {
+        "reward": args.reward,
+        "episodes": args.episodes,
+        "seed": args.seed,
+        "pretrain_idm": args.pretrain_idm,
+        "decision_interval": args.decision_interval,
+        "stop_when_converged": args.stop_when_converged,
+    }
+    if args.scenario is not None:
+        flags["scenario"] = args.scenario
+    if args.option:
+        flags["scenario_options"] = {**config.scenario_options, **dict(args.option)}
+    config = apply_overrides(config, {k: v for k, v in flags.items() if v is not None})
+    if args.algo is not None:
+        from agent_client.rl.td3 import TD3Config
+
+        preset = TD3Config.td3() if args.algo == "td3" else TD3Config.ddpg()
+        algo = {k: getattr(preset, k) for k in ("n_critics", "policy_delay", "target_noise")}
+        config = apply_overrides(config, {"learner": {**config.learner.to_dict(), **algo}})
+    for assignment in args.set:
+        update = parse_assignment(assignment)
+        config = apply_overrides(config, update)
+    return config
+
+
+class BarReporter:
+    """A tqdm bar over episodes with the running reward and speed; messages above it."""
+
+    def __init__(self, total: int, initial: int, quiet: bool) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total, initial=initial, unit="ep", disable=quiet, dynamic_ncols=True)
+        self.rewards: deque[float] = deque(maxlen=10)
+        self.speeds: deque[float] = deque(maxlen=10)
+        self.quiet = quiet
+
+    def message(self, text: str) -> None:
+        if not self.quiet:
+            self.bar.write(text)
+
+    def episode(self, row: dict[str, Any]) -> None:
+        self.rewards.append(float(row["total_reward"]))
+        self.speeds.append(float(row["average_speed"]))
+        self.bar.set_postfix(
+            reward=f"{sum(self.rewards) / len(self.rewards):.1f}",
+            speed=f"{sum(self.speeds) / len(self.speeds):.2f}",
+            end=row["reason"],
+            step=row["global_step"],
+        )
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    from agent_client.training.config import TrainConfig, apply_overrides
+    from agent_client.training.plots import plot_training
+    from agent_client.training.trainer import Trainer
+
+    if args.resume is not None:
+        saved = json.loads((existing_folder(args.resume, "--resume") / "config.json").read_text())
+        config = TrainConfig.from_dict(saved)
+        if args.episodes is not None:
+            config = apply_overrides(config, {"episodes": args.episodes})
+        out = args.resume
+    else:
+        config = build_config(args)
+        out = args.out or Path("runs") / f"{config.scenario}-{config.reward}-{config.seed}"
+    reporter = BarReporter(config.episodes, 0, args.quiet)
+    servers = args.server or [DEFAULT_ADDRESS]
+    trainer = Trainer(config, servers, out, args.timeout, reporter, args.retry_for)
+    try:
+        reporter.message(
+            f"training {config.learner.algo} on {config.scenario} with reward {config.reward} "
+            f"({trainer.features.name} features, {trainer.agent.n_lane_actions} lane choices) "
+            f"-> {out}"
+        )
+        progress = trainer.run(resume=args.resume is not None)
+    finally:
+        reporter.close()
+        trainer.close()
+    figure = plot_training(out)
+    print(
+        f"run folder: {out} (policy.pt, episodes.csv, evaluations.csv, tensorboard/, {figure.name})"
+    )
+    if progress.converged_episode is not None:
+        print(
+            f"converged at episode {progress.converged_episode} "
+            f"after {progress.converged_time / 60:.1f} min"  # type: ignore[operator]
+        )
+    return 0

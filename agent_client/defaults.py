@@ -1,0 +1,29 @@
+"""The learner side's defaults, in one place: scenario, deadlines and seed bands.
+
+The seed bands keep every kind of episode apart, so that no evaluation ever drives an episode
+the policy was trained on, and no comparison uses the seeds that chose the policy.
+"""
+
+from __future__ import annotations
+
+DEFAULT_SCENARIO = "cf"
+"""The paper's car-following case; every server built on this project offers it."""
+
+STEP_TIMEOUT_S = 10.0
+"""Seconds to wait for the reply to a hello or a step."""
+RESET_TIMEOUT_S = 120.0
+"""Seconds to wait for the reply to a reset (a reset may build a network and warm up)."""
+CLOSE_TIMEOUT_S = 1.0
+"""Seconds to wait for the goodbye of a server that may be gone."""
+
+TRAINING_SEED = 0
+"""Training episode i of a run with seed s uses seed s + i."""
+TRAINING_EVALUATION_SEED = 100_000
+"""First seed of the greedy evaluations during training (they choose ``policy.pt``)."""
+EVALUATION_SEED = 200_000
+"""First seed of `agent-client evaluate`: disjoint from training and from the evaluations that
+chose the policy."""
+CALIBRATION_SEED = 300_000
+"""First seed of the episodes recorded for `agent-client calibrate-idm`."""
+PRETRAIN_SEED = 1_000_000
+"""First seed of the IDM episodes recorded for behaviour cloning (`--pretrain-idm`)."""

@@ -1,0 +1,82 @@
+"""Driver specs as users write them: ``idm``, ``idm:PARAMS.json`` or a policy file.
+
+`load_driver` is the one parser of these specs (drive, evaluate, the baselines); every bad spec
+is a `UsageError` that names it, before any connection is opened.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+from agent_client.drivers.episode import Driver
+from agent_client.drivers.idm import IDMDriver, IDMParams
+from agent_client.errors import UsageError
+
+IDM = "idm"
+IDM_PREFIX = "idm:"
+
+
+def is_idm(spec: str) -> bool:
+    """True for ``idm`` and ``idm:FILE``."""
+    return spec == IDM or spec.startswith(IDM_PREFIX)
+
+
+def load_driver(spec: str) -> Driver:
+    """A driver from ``idm``, ``idm:FILE.json`` (calibrated parameters) or a policy file."""
+    if spec == IDM:
+        return IDMDriver()
+    if spec.startswith(IDM_PREFIX):
+        return IDMDriver(load_idm_params(Path(spec[len(IDM_PREFIX) :])))
+    path = Path(spec)
+    if not path.is_file():
+        raise UsageError(
+            f"driver {spec!r}: no such file; give idm, idm:PARAMS.json or a policy file "
+            "(runs/NAME/policy.pt)"
+        )
+    from agent_client.drivers.policy import load_policy_driver
+
+    try:
+        return load_policy_driver(path)
+    except ValueError as exc:
+        raise UsageError(f"driver {spec!r}: {exc}") from exc
+
+
+def load_idm_params(path: Path) -> IDMParams:
+    """IDM parameters from a JSON file: `calibrate-idm`'s output or a plain parameter map."""
+    try:
+        data: Any = json.loads(path.read_text())
+    except OSError as exc:
+        raise UsageError(f"idm:{path}: {exc.strerror or exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"idm:{path}: not JSON: {exc}") from exc
+    params = data.get("params", data) if isinstance(data, dict) else None
+    known = [f.name for f in dataclasses.fields(IDMParams)]
+    if not isinstance(params, dict):
+        raise UsageError(f"idm:{path}: expected a map of IDM parameters ({', '.join(known)})")
+    unknown = sorted(set(params) - set(known))
+    if unknown:
+        raise UsageError(
+            f"idm:{path}: unknown IDM parameter {unknown[0]!r}; known: {', '.join(known)}"
+        )
+    return IDMParams(**params)
+
+
+def training_settings(spec: str) -> tuple[str | None, dict[str, Any]]:
+    """The scenario and reset options a policy file was trained with, from its run's config.json.
+
+    A policy trained with ``decision_interval`` 1.0 must also drive with it; drive and evaluate
+    use these as defaults (the command line overrides them). ``(None, {})`` for IDM specs and
+    policies without a run folder.
+    """
+    if is_idm(spec):
+        return None, {}
+    config = Path(spec).parent / "config.json"
+    if not config.is_file():
+        return None, {}
+    saved = json.loads(config.read_text())
+    options = {"decision_interval": saved.get("decision_interval", 0.1)}
+    options.update(saved.get("scenario_options") or {})
+    return saved.get("scenario"), options

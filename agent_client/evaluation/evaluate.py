@@ -1,0 +1,153 @@
+"""Evaluate drivers on the same seeds and keep what the paper's §4.4-4.5 figures are made of.
+
+Each episode is driven through `agent_client.drivers.episode.run_episode` and kept as an
+`EpisodeRecord`: the summary of `agent_client.evaluation.metrics` plus the samples behind the
+distributions (jerk, time headway, time to collision) and the target-lane gaps at each
+lane-change start. An `Evaluation` holds every driver's records and the setting;
+`agent_client.evaluation.summaries` turns records into figures and
+`agent_client.evaluation.report` writes them out.
+
+Table 3's headways are taken at the observation before a lane change starts (the state the
+decision was made on): the gap to the leader (lead) and to the follower (lag) in the target lane,
+each divided by the ego's speed; a missing vehicle gives no headway.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent_client.constants import MIN_MOVING_SPEED
+from agent_client.drivers.episode import Driver, Episode, run_episode
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.evaluation.metrics import EpisodeSamples, EpisodeSummary, episode_summary
+from protocol.messages import Observation, OptionValue
+
+ROLE_LABELS = {"policy": "policy", "baseline": "baseline", "cf_policy": "CF-only policy"}
+"""How the report names each role of `Evaluation.drivers`."""
+
+
+@dataclass(frozen=True)
+class LaneChangeGap:
+    """Target-lane time headways (s) when a lane change starts; None when no vehicle is there."""
+
+    direction: int
+    lead_headway: float | None
+    lag_headway: float | None
+
+
+def lane_change_gaps(observations: Sequence[Observation]) -> list[LaneChangeGap]:
+    """Target-lane lead and lag headways at each `events.lane_change_started`."""
+    gaps = []
+    for before, after in itertools.pairwise(observations):
+        if not after.events.lane_change_started:
+            continue
+        direction = after.action.lane_change or after.action.requested_lane_change
+        side = before.neighbours
+        lead, lag = (
+            (side.left_leader, side.left_follower)
+            if direction > 0
+            else (side.right_leader, side.right_follower)
+        )
+        speed = before.ego.speed
+        moving = speed > MIN_MOVING_SPEED
+        gaps.append(
+            LaneChangeGap(
+                direction=int(direction),
+                lead_headway=max(lead.gap, 0.0) / speed if lead.present and moving else None,
+                lag_headway=max(lag.gap, 0.0) / speed if lag.present and moving else None,
+            )
+        )
+    return gaps
+
+
+@dataclass(eq=False)
+class EpisodeRecord:
+    """An evaluation episode: its summary and the samples behind the distributions."""
+
+    summary: EpisodeSummary
+    jerks: np.ndarray
+    """Signed jerk samples (m/s^3) at the simulator's step length."""
+    headways: np.ndarray
+    ttcs: np.ndarray
+    leader_steps: int
+    lane_count: int
+    lane_change_gaps: list[LaneChangeGap] = field(default_factory=list)
+    refusals: dict[str, int] = field(default_factory=dict)
+    """Refused lane changes by `protocol.messages.LaneChangeRefusal` value."""
+
+    @classmethod
+    def from_episode(cls, episode: Episode) -> EpisodeRecord:
+        """The record of a driven episode: summary, samples, lane-change gaps and refusals."""
+        observations = episode.observations
+        summary = episode_summary(episode)
+        samples = EpisodeSamples.from_observations(observations, episode.step_length)
+        refusals = Counter(
+            o.action.lane_change_refused for o in observations if o.events.lane_change_refused
+        )
+        return cls(
+            summary=summary,
+            jerks=samples.jerks,
+            headways=samples.headways,
+            ttcs=samples.ttcs,
+            leader_steps=samples.leader_steps,
+            lane_count=max(o.ego.lane_count for o in observations),
+            lane_change_gaps=lane_change_gaps(observations),
+            refusals=dict(refusals),
+        )
+
+
+def evaluate_driver(
+    env: RemoteEnv,
+    driver: Driver,
+    seeds: Sequence[int],
+    on_episode: Callable[[EpisodeRecord], None] | None = None,
+) -> list[EpisodeRecord]:
+    """Drive one episode per seed (the same seeds for every driver compared)."""
+    records = []
+    for index, seed in enumerate(seeds):
+        record = EpisodeRecord.from_episode(run_episode(env, driver, seed, index))
+        if on_episode is not None:
+            on_episode(record)
+        records.append(record)
+    return records
+
+
+@dataclass
+class DriverRun:
+    """One driver's evaluation episodes."""
+
+    spec: str
+    records: list[EpisodeRecord]
+
+
+@dataclass
+class Evaluation:
+    """Everything a report needs: the setting, the drivers' episodes, the training log."""
+
+    scenario: str
+    seeds: list[int]
+    options: dict[str, OptionValue]
+    versions: dict[str, str]
+    command: str
+    policy: DriverRun
+    baseline: DriverRun
+    cf_policy: DriverRun | None = None
+    training_rows: list[dict[str, str]] | None = None
+    run_folder: str | None = None
+    table2_bins: int = 10
+
+    def drivers(self) -> dict[str, DriverRun]:
+        """The compared drivers by role: policy, baseline and (if given) cf_policy."""
+        found = {"policy": self.policy, "baseline": self.baseline}
+        if self.cf_policy is not None:
+            found["cf_policy"] = self.cf_policy
+        return found
+
+    @property
+    def lanes(self) -> int:
+        return max(r.lane_count for run in self.drivers().values() for r in run.records)

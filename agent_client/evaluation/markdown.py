@@ -1,0 +1,335 @@
+"""``report.md`` from `agent_client.evaluation.report.build_metrics`' dictionary.
+
+One function per section; each returns its lines. The text only formats numbers of the
+dictionary (``metrics.json``), the paper's among them, so the two never disagree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+from agent_client.constants import HEADWAY_SAFE, JERK_COMFORT_LIMIT, TTC_CRITICAL
+from agent_client.evaluation.evaluate import ROLE_LABELS
+from agent_client.evaluation.paper import LC_FLOW_PER_LANE, NGSIM_FLOW_PER_LANE
+
+Figures = dict[str, Any]
+"""One driver's figures (`agent_client.evaluation.summaries.summarise`, with its spec)."""
+
+
+def _f(value: Any, digits: int = 2, suffix: str = "") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}f}{suffix}"
+
+
+def _pct(value: Any, digits: int = 1) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return f"{100 * value:.{digits}f} %"
+
+
+def _gain(value: float | None) -> str:
+    """A relative gain as a signed percentage ("+1.2 %")."""
+    return f"{100 * value:+.1f} %" if value is not None else "n/a"
+
+
+def _ratio_gain(ratio: float | None) -> str:
+    """The gain of a ratio over 1 ("+1.2 %" for 1.012)."""
+    return _gain(ratio - 1) if ratio is not None else "n/a"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return lines
+
+
+def render_markdown(metrics: dict[str, Any]) -> str:
+    """The report as markdown, from `build_metrics`' dictionary."""
+    lines = _setting_section(metrics)
+    lines += _cf_section(metrics)
+    if metrics["lane_changing"] is not None:
+        lines += _lc_section(metrics)
+    else:
+        lines += [
+            "## Lane changing (Tables 2-3, Fig. 13)",
+            "",
+            "Not applicable: the scenario has one lane (evaluate on `cflc` for these tables).",
+            "",
+        ]
+    lines += [
+        f"Every figure above is in `metrics.json`. Paper: {metrics['paper']['source']}.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _setting_section(metrics: dict[str, Any]) -> list[str]:
+    """Title, scenario, seeds, versions and the command that reruns the evaluation."""
+    drivers = metrics["drivers"]
+    title = f"# Evaluation on `{metrics['scenario']}`: `{drivers['policy']['spec']}` vs "
+    title += f"`{drivers['baseline']['spec']}`"
+    seeds = metrics["seeds"]
+    seed_text = f"{seeds[0]}..{seeds[-1]}" if len(seeds) > 1 else str(seeds[0])
+    options = ", ".join(f"{k}={v}" for k, v in metrics["options"].items()) or "defaults"
+    return [
+        title,
+        "",
+        "## Setting and how to rerun",
+        "",
+        f"* scenario `{metrics['scenario']}` ({metrics['lanes']} lane(s)), options: {options}",
+        f"* {metrics['episodes']} episodes per driver, the same seeds for all: {seed_text}",
+        *(f"* {name}: {value}" for name, value in metrics["versions"].items()),
+        "",
+        "```",
+        metrics["command"],
+        "```",
+        "",
+    ]
+
+
+# --------------------------------------------------------------------------- car following
+
+
+def _cf_section(metrics: dict[str, Any]) -> list[str]:
+    """Figs. 9-10: the car-following table, the gain, the ceiling, the targets and the plots."""
+    drivers = metrics["drivers"]
+    paper = metrics["paper"]["cf"]
+    header = ["figure", *(f"{ROLE_LABELS[r]} (`{d['spec']}`)" for r, d in drivers.items()), "paper"]
+    gain = _ratio_gain(metrics["comparison"]["speed_ratio_policy_to_baseline"])
+    lines = ["## Car following: efficiency, comfort, safety (Figs. 9-10)", ""]
+    lines += _table(header, _cf_rows(list(drivers.values()), paper))
+    lines += [
+        "",
+        f"Policy vs baseline average speed: **{gain}** (the paper: DRL "
+        f"{paper['drl_average_speed']} m/s vs IDM {paper['idm_average_speed']} m/s, "
+        f"{_gain(paper['drl_gain_over_idm'])}).",
+        "",
+        _ceiling_note(metrics),
+        "",
+        _targets_line(metrics["comparison"]["targets"]),
+        "",
+    ]
+    return lines + _cf_figures(metrics)
+
+
+def _cf_rows(drivers: list[Figures], paper: dict[str, Any]) -> list[list[str]]:
+    """One row per car-following figure: its name, each driver's value, the paper's."""
+    rows: list[tuple[str, Callable[[Figures], str], str]] = [
+        ("average speed, m/s: mean (sd)",
+         lambda d: f"{_f(d['average_speed'])} ({_f(d['average_speed_sd'])})",
+         f"DRL {paper['drl_average_speed']}, IDM {paper['idm_average_speed']}"),
+        ("leader-at-entry ceiling, m/s (mean)", lambda d: _f(d["ceiling_speed"]), ""),
+        ("average speed / ceiling (mean of episodes)",
+         lambda d: _f(d["speed_ratio_to_ceiling"], 3), "not reported"),
+        ("collisions per episode (episodes with one)",
+         lambda d: f"{_f(d['collisions_per_episode'])} ({d['episodes_with_collision']})", ""),
+        (f"jerk samples above {JERK_COMFORT_LIMIT} m/s^3",
+         lambda d: _pct(d["jerk_share_above_limit"], 2),
+         f"DRL {_pct(paper['drl_jerk_share_above_limit'])}"),
+        ("max abs jerk, m/s^3", lambda d: _f(d["max_abs_jerk"]), ""),
+        (f"time headway < {HEADWAY_SAFE:g} s (share)",
+         lambda d: _pct(d["headway"]["share_below_1s"]), ""),
+        ("time headway, s: mean / median",
+         lambda d: f"{_f(d['headway']['mean'])} / {_f(d['headway']['median'])}", ""),
+        ("min time headway, s", lambda d: _f(d["min_time_headway"]), ""),
+        ("min TTC, s", lambda d: _f(d["ttc"]["min"]), ""),
+        (f"TTC < {TTC_CRITICAL:g} s (share of leader steps)",
+         lambda d: _pct(d["ttc"]["share_below_4s"]), ""),
+        ("end reasons",
+         lambda d: ", ".join(f"{k} {v}" for k, v in d["end_reasons"].items()), ""),
+    ]  # fmt: skip
+    return [[name, *(cell(d) for d in drivers), theirs] for name, cell, theirs in rows]
+
+
+def _ceiling_note(metrics: dict[str, Any]) -> str:
+    """What the leader-at-entry ceiling means here: a bound on one lane, a reference on more."""
+    ceiling = _ratio_gain(metrics["comparison"]["ceiling_over_baseline"])
+    if metrics["multi_lane"]:
+        return (
+            "The ceiling is the average speed the ego would have had arriving together with the "
+            "vehicle ahead of it at entry. On several lanes the ego can overtake that vehicle, so "
+            f"here it is a reference, not a bound (it is {ceiling} over the baseline)."
+        )
+    paper_gain = _gain(metrics["paper"]["cf"]["drl_gain_over_idm"])
+    return (
+        "**The ceiling.** On one lane the ego cannot arrive before the vehicle that was ahead "
+        "of it when it entered, and that vehicle's trip does not depend on the ego: arriving "
+        f"together with it is the best any driver can do here, {ceiling} over the "
+        f"baseline on these seeds. A gain like the paper's {paper_gain} over IDM is therefore out "
+        "of reach without collisions (or a baseline far below the traffic's pace): judge a "
+        "speed gain against the ceiling, not against the paper's figure."
+    )
+
+
+def _targets_line(targets: dict[str, bool]) -> str:
+    return (
+        "Targets of the training's greedy evaluations (docs/learner.md), for the policy: "
+        + ", ".join(f"{name} {'yes' if ok else 'no'}" for name, ok in targets.items())
+        + "."
+    )
+
+
+def _cf_figures(metrics: dict[str, Any]) -> list[str]:
+    """Figs. 9 and 10 with their captions."""
+    figures = metrics["figures"]
+    paper_share = _pct(metrics["paper"]["cf"]["drl_jerk_share_above_limit"])
+    return [
+        f"![Fig. 9: per-episode average speed]({figures['speed_distribution']})",
+        "",
+        "Fig. 9 (ours): per-episode average speed of each driver on the same seeds; dashed "
+        "lines are the means, the dotted line the mean leader-at-entry ceiling.",
+        "",
+        f"![Fig. 10: distribution of jerk]({figures['jerk_distribution']})",
+        "",
+        f"Fig. 10 (ours): jerk at the simulator's step (change of the realised acceleration over "
+        f"one step), all steps of all episodes; the dashed lines mark +/-{JERK_COMFORT_LIMIT} "
+        f"m/s^3, the paper's comfort limit ({paper_share} of its DRL samples were beyond it).",
+        "",
+    ]
+
+
+# --------------------------------------------------------------------------- lane changing
+
+
+def _lc_section(metrics: dict[str, Any]) -> list[str]:
+    """Tables 2-3 and Fig. 13: lane changes over training, in evaluation, their gaps, the gain."""
+    drivers = metrics["drivers"]
+    paper = metrics["paper"]["lc"]
+    lc = metrics["lane_changing"]
+    return [
+        "## Lane changing (Tables 2-3, Fig. 13)",
+        "",
+        *_table2_section(lc["table2"], paper["table2_last_row"]),
+        "",
+        *_evaluation_lc_section(drivers, paper),
+        "",
+        *_table3_section(drivers, paper["table3"]),
+        "",
+        *_integrated_vs_cf_section(lc["integrated_vs_cf"], paper),
+        "",
+    ]
+
+
+def _table2_section(table: dict[str, Any] | None, last: dict[str, Any]) -> list[str]:
+    """Table 2: lane-change instructions, success and frequency per range of training episodes."""
+    lines = ["### Table 2: lane-change decisions over training", ""]
+    if table is None:
+        return [*lines, "Not computed: pass `--run runs/NAME` to read the run's `episodes.csv`."]
+    rows = [
+        [
+            row["episodes"],
+            _f(row["instructions_per_episode"], 1),
+            _pct(row["success_rate"]),
+            _f(row["reward_of_successful_lc"], 3),
+            _f(row["frequency"]),
+        ]
+        for row in table["rows"]
+    ]
+    rows.append(
+        [
+            f"paper {last['episodes']}",
+            str(last["instructions_per_episode"]),
+            _pct(last["success_rate"]),
+            _f(last["reward_of_successful_lc"]),
+            _f(last["lc_frequency"]),
+        ]
+    )
+    header = [
+        "training episodes",
+        "LC instructions per episode",
+        "success rate (started / instructions)",
+        "avg. reward of successful LC",
+        "actual LC frequency (veh/km/lane)",
+    ]
+    return [
+        *lines,
+        f"From `{table['run']}/episodes.csv`, {table['lanes']} lanes.",
+        "",
+        *_table(header, rows),
+        "",
+        "Instructions are lane changes started plus refused (any reason: gap too small, no "
+        "lane, one already in progress). The reward of a successful lane change is the "
+        "training reward of the step whose instruction started it (n/a: no change in the "
+        "range, or a log without that column).",
+    ]
+
+
+def _evaluation_lc_section(drivers: dict[str, Figures], paper: dict[str, Any]) -> list[str]:
+    """Each driver's lane changes in the evaluation episodes, beside the paper's and NGSIM's."""
+    rows = [_lc_row(ROLE_LABELS[role], d["lane_changes"]) for role, d in drivers.items()]
+    rows.append(["paper (converged)", "", "", "", _f(paper["lc_frequency"])])
+    ngsim = paper["lc_frequency_ngsim"]
+    rows += [[f"NGSIM {name}", "", "", "", _f(value)] for name, value in ngsim.items()]
+    header = ["driver", "instructions per episode", "success rate", "refused by reason"]
+    flows = " and ".join(str(flow) for flow in NGSIM_FLOW_PER_LANE.values())
+    return [
+        "### Lane changes in the evaluation episodes",
+        "",
+        *_table([*header, "veh/km/lane"], rows),
+        "",
+        "Frequency = lane changes started / (km driven x lanes). NGSIM's traffic was heavier "
+        f"(about {flows} veh/h/lane) than the paper's {LC_FLOW_PER_LANE} veh/h/lane.",
+    ]
+
+
+def _lc_row(label: str, stats: dict[str, Any]) -> list[str]:
+    refused = ", ".join(f"{k} {v}" for k, v in stats["refused_by_reason"].items()) or "none"
+    if stats.get("aborted"):
+        refused += f"; started but aborted by the simulator: {stats['aborted']}"
+    return [
+        label,
+        _f(stats["instructions_per_episode"], 1),
+        _pct(stats["success_rate"]),
+        refused,
+        _f(stats["frequency"]),
+    ]
+
+
+def _table3_section(drivers: dict[str, Figures], paper: dict[str, Any]) -> list[str]:
+    """Table 3: target-lane lead and lag time headways at lane-change starts."""
+    rows = [[name, _f(value["lead"]), _f(value["lag"]), ""] for name, value in paper.items()]
+    for role, d in drivers.items():
+        t3 = d["table3"]
+        samples = f"{t3['lane_changes']} (lead {t3['lead_samples']}, lag {t3['lag_samples']})"
+        rows.append([f"ours: {ROLE_LABELS[role]}", _f(t3["lead"]), _f(t3["lag"]), samples])
+    header = ["", "avg. lead time headway (s)", "avg. lag time headway (s)"]
+    return [
+        "### Table 3: time headways in the target lane when a lane change starts",
+        "",
+        *_table([*header, "lane changes (samples)"], rows),
+        "",
+        "Lead (lag) headway: gap to the leader (follower) in the target lane at the observation "
+        "before the lane change started, divided by the ego's speed; a lane without that vehicle "
+        "gives no sample.",
+    ]
+
+
+def _integrated_vs_cf_section(versus: dict[str, Any] | None, paper: dict[str, Any]) -> list[str]:
+    """Fig. 13: the integrated (CF + LC) policy's average speed against a CF-only policy's."""
+    lines = ["### The integrated model against car following only (Fig. 13)", ""]
+    if versus is None:
+        return [*lines, "Not computed: pass `--cf-policy FILE` (a car-following-only policy)."]
+    rows = [
+        [
+            "ours",
+            _f(versus["integrated_average_speed"]),
+            _f(versus["cf_average_speed"]),
+            _gain(versus["gain"]),
+        ],
+        [
+            "paper",
+            _f(paper["integrated_average_speed"]),
+            _f(paper["cf_average_speed"]),
+            _gain(paper["integrated_gain_over_cf"]),
+        ],
+    ]
+    header = ["", "integrated (CF + LC), m/s", "CF only, m/s", "gain"]
+    return [
+        *lines,
+        *_table(header, rows),
+        "",
+        "Fig. 9 above shows the CF-only policy's speed distribution too.",
+    ]

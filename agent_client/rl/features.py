@@ -1,0 +1,100 @@
+"""What the networks see: scaled features computed from the named observation.
+
+The wire carries raw SI values (and the flat vector of the protocol's schema); choosing and
+scaling inputs is a learning decision, so it lives here. Two sets:
+
+* ``cf`` — the paper's car-following state (§4.3): speed, acceleration, gap and speed difference
+  to the leader, plus the time headway and leader presence (a missing leader is a flag, not a
+  huge gap).
+* ``lc`` — ``cf`` plus the other five neighbours of Fig. 11 (presence, gap, relative speed) and
+  whether there is a lane to the left and to the right.
+
+All features are O(1): speeds by the speed limit, gaps by 100 m (capped at 2), speed differences
+by 10 m/s, headways by 5 s (capped at 1).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from agent_client.constants import PAPER_SPEED_LIMIT
+from agent_client.errors import FeatureMismatch, UsageError
+from protocol.messages import Neighbour, Observation
+
+__all__ = ["FEATURE_SETS", "FeatureMap", "FeatureMismatch", "car_following", "lane_changing"]
+
+GAP_SCALE = 100.0
+GAP_CAP = 2.0
+SPEED_DIFF_SCALE = 10.0
+HEADWAY_SCALE = 5.0
+ACCELERATION_SCALE = 3.0
+
+_OTHER_SLOTS = ("left_leader", "left_follower", "follower", "right_leader", "right_follower")
+
+
+def _neighbour(n: Neighbour, ego_speed: float) -> list[float]:
+    if not n.present:
+        return [0.0, GAP_CAP, 0.0]
+    return [1.0, min(n.gap / GAP_SCALE, GAP_CAP), (n.speed - ego_speed) / SPEED_DIFF_SCALE]
+
+
+def car_following(obs: Observation) -> list[float]:
+    """The six car-following features."""
+    ego = obs.ego
+    limit = ego.speed_limit if ego.speed_limit > 0 else PAPER_SPEED_LIMIT
+    leader = obs.neighbours.leader
+    if leader.present:
+        headway = min(max(leader.gap, 0.0) / max(ego.speed, 0.5) / HEADWAY_SCALE, 1.0)
+        lead = [
+            1.0,
+            min(leader.gap / GAP_SCALE, GAP_CAP),
+            (leader.speed - ego.speed) / SPEED_DIFF_SCALE,
+        ]
+    else:
+        headway, lead = 1.0, [0.0, GAP_CAP, 0.0]
+    return [ego.speed / limit, ego.acceleration / ACCELERATION_SCALE, *lead, headway]
+
+
+def lane_changing(obs: Observation) -> list[float]:
+    """Car-following features, the other five neighbours and the lanes available."""
+    features = car_following(obs)
+    for slot in _OTHER_SLOTS:
+        features += _neighbour(getattr(obs.neighbours, slot), obs.ego.speed)
+    ego = obs.ego
+    features += [float(ego.lane < ego.lane_count - 1), float(ego.lane > 0)]
+    return features
+
+
+FEATURE_SETS: dict[str, Callable[[Observation], list[float]]] = {
+    "cf": car_following,
+    "lc": lane_changing,
+}
+
+
+class FeatureMap:
+    """Named observation -> float32 feature vector of a chosen set."""
+
+    def __init__(self, name: str) -> None:
+        if name not in FEATURE_SETS:
+            raise UsageError(f"unknown feature set {name!r}; known: {', '.join(FEATURE_SETS)}")
+        self.name = name
+        self._extract = FEATURE_SETS[name]
+        self.dim = len(self._extract(_EXAMPLE))
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        return np.asarray(self._extract(obs), dtype=np.float32)
+
+
+def _example() -> Observation:
+    from protocol.messages import AppliedAction, Ego, Events, Neighbours
+
+    absent = Neighbour(False, 200.0, 0.0, 0.0)
+    return Observation(
+        0, 0.0, Ego(0.0, 0.0, 0, 1, 0.0, 22.22), Neighbours(*(absent,) * 6), Events(),
+        AppliedAction(0.0, 0, 0.0, 0),
+    )  # fmt: skip
+
+
+_EXAMPLE = _example()

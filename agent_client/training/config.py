@@ -1,0 +1,177 @@
+"""Training configuration: documented defaults, a TOML file, command-line overrides.
+
+Precedence: defaults < ``--config FILE`` < explicit command-line flags < ``--set KEY=VALUE``.
+The learner's own hyper-parameters live in the ``[learner]`` table (see `TD3Config`); runs
+written before it was renamed call it ``[ddpg]``, which is still read.
+
+Example file::
+
+    episodes = 400
+    reward = "safe"
+    [learner]
+    actor_lr = 3e-4
+    hidden_sizes = [64, 64]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from agent_client.defaults import DEFAULT_SCENARIO, TRAINING_EVALUATION_SEED, TRAINING_SEED
+from agent_client.errors import UsageError
+from agent_client.rl.td3 import TD3Config
+
+LEARNER = "learner"
+"""The table of the learner's own hyper-parameters."""
+LEGACY_LEARNER = "ddpg"
+"""Its name before 0.2, still read from older runs' config.json and ``--set ddpg.KEY``."""
+
+RECOMMENDED_LEARNER = TD3Config.td3(gamma=0.98, noise="ou", max_grad_norm=1.0)
+"""The recommended learner (docs/learner.md): TD3 (DDPG with twin critics, delayed actor updates
+and target smoothing) with a 5 s horizon (gamma 0.98 at 0.1 s decisions), temporally correlated
+exploration and gradient clipping. Plain DDPG with the same settings is `--algo ddpg`."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run depends on (saved as config.json in the run folder)."""
+
+    scenario: str = DEFAULT_SCENARIO
+    """Scenario name offered by the server (cf, cflc, or a user's own)."""
+    reward: str = "safe"
+    """Reward function: safe (ours, recommended), ra1, ra2, ra3, ra4 or rlc."""
+    features: str = "auto"
+    """Network inputs: cf, lc, or auto (lc on multi-lane roads, else cf)."""
+    lane_change: str = "auto"
+    """Learn lane changes: yes, no, or auto (yes on multi-lane roads)."""
+    episodes: int = 300
+    """Training episodes."""
+    seed: int = TRAINING_SEED
+    """Seed of networks, exploration and of the training episodes (episode i uses seed+i)."""
+    decision_interval: float = 0.1
+    """Seconds per decision; 1.0 is the paper's enlarged time step."""
+    scenario_options: dict[str, Any] = field(default_factory=dict)
+    """Extra scenario options sent with every reset (e.g. flow)."""
+    warmup_policy: str = "idm"
+    """Actions before learning starts: idm (baseline + noise) or random."""
+    pretrain_idm: bool = False
+    """Behaviour-clone the actor on IDM's actions before DDPG (the paper's §4.3.2 tip)."""
+    pretrain_episodes: int = 5
+    """IDM episodes collected for pre-training."""
+    pretrain_epochs: int = 30
+    """Passes over the IDM data when fitting the actor."""
+    noise_final: float = 0.2
+    """Exploration noise scale at the end of the decay (1 = TD3Config.noise_sigma)."""
+    noise_decay_steps: int = 100_000
+    """Environment steps over which the noise scale decays linearly from 1 to noise_final."""
+    eval_every: int = 10
+    """Greedy evaluation every N episodes (0 disables)."""
+    eval_episodes: int = 10
+    """Episodes per greedy evaluation."""
+    eval_seed: int = TRAINING_EVALUATION_SEED
+    """Seed of the first evaluation episode (disjoint from training seeds)."""
+    stop_when_converged: bool = False
+    """Stop after `converged_evals` consecutive evaluations meeting every target."""
+    converged_evals: int = 3
+    """Consecutive passing evaluations that count as converged."""
+    checkpoint_every: int = 10
+    """Write a checkpoint every N episodes (and on Ctrl-C / SIGTERM)."""
+    deploy_averaged: bool = True
+    """Evaluate and save the target (Polyak-averaged) networks: a smoothed policy that does
+    not jump with every gradient step."""
+    torch_threads: int = 1
+    """torch intra-op threads (1 is fastest for small networks on a shared CPU)."""
+    learner: TD3Config = field(default_factory=lambda: RECOMMENDED_LEARNER)
+    """Learner hyper-parameters (default: `RECOMMENDED_LEARNER`)."""
+
+    def __post_init__(self) -> None:
+        from agent_client.rl.features import FEATURE_SETS
+        from agent_client.rl.rewards import REWARDS
+
+        choices = {
+            "reward": tuple(REWARDS),
+            "features": ("auto", *FEATURE_SETS),
+            "lane_change": ("auto", "yes", "no"),
+            "warmup_policy": ("idm", "random"),
+        }
+        for name, valid in choices.items():
+            if getattr(self, name) not in valid:
+                raise UsageError(
+                    f"{name} {getattr(self, name)!r} is not one of: {', '.join(valid)}"
+                )
+        for name in ("episodes", "eval_episodes", "converged_evals", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise UsageError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.decision_interval <= 0:
+            raise UsageError(f"decision_interval must be > 0, got {self.decision_interval}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != LEARNER}
+        d[LEARNER] = self.learner.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        return apply_overrides(cls(), d)
+
+
+def apply_overrides(config: TrainConfig, values: dict[str, Any]) -> TrainConfig:
+    """A copy of `config` with `values` (a nested ``learner`` table is merged into the learner's
+    settings); an unknown or invalid setting raises `UsageError` naming it and the valid ones."""
+    values = dict(values)
+    if LEGACY_LEARNER in values:  # config.json of a run written before the rename
+        values[LEARNER] = {**values.pop(LEGACY_LEARNER), **values.get(LEARNER, {})}
+    known = [f.name for f in dataclasses.fields(TrainConfig)]
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise UsageError(f"unknown training setting {unknown[0]!r}; known: {', '.join(known)}")
+    top = {k: v for k, v in values.items() if k != LEARNER}
+    learner = config.learner
+    if LEARNER in values:
+        given = values[LEARNER]
+        learner = (
+            given
+            if isinstance(given, TD3Config)
+            else TD3Config.from_dict({**learner.to_dict(), **given})
+        )
+    try:
+        return dataclasses.replace(config, **top, learner=learner)
+    except (TypeError, ValueError) as exc:
+        raise UsageError(str(exc)) from exc
+
+
+def load_config_file(path: Path) -> dict[str, Any]:
+    """Settings from a TOML (or JSON) file; a missing or malformed file is a `UsageError`."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise UsageError(f"--config {path}: {exc.strerror or exc}") from exc
+    try:
+        loaded: dict[str, Any] = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise UsageError(
+            f"--config {path}: not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}"
+        ) from exc
+    if not isinstance(loaded, dict):
+        raise UsageError(f"--config {path}: expected a table of settings")
+    return loaded
+
+
+def parse_assignment(text: str) -> dict[str, Any]:
+    """``KEY=VALUE`` or ``learner.KEY=VALUE`` (VALUE as JSON when it parses) to a nested dict."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key:
+        raise UsageError(f"--set {text!r}: expected KEY=VALUE")
+    try:
+        value: Any = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    table, dot, name = key.partition(".")
+    if dot and table in (LEARNER, LEGACY_LEARNER):
+        return {LEARNER: {name: value}}
+    return {key: value}

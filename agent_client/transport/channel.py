@@ -1,0 +1,92 @@
+"""The one interface of a client transport: a request/reply channel with deadlines.
+
+An implementation moves frames (`send_raw`, `receive_frame`); encoding, decoding and the
+typed helpers are here, once, for every transport and for the conformance kit.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Self
+
+from agent_client.errors import MalformedReply, ServerError
+from protocol.codec import decode_reply, encode
+from protocol.errors import ProtocolError
+from protocol.messages import Error, Hello, Reply, Request, Welcome
+from protocol.version import PROTOCOL_VERSION
+
+CLIENT_NAME = "agent_client"
+
+
+class Channel(ABC):
+    """A request/reply channel to one server, with per-request deadlines (either transport).
+
+    Subclasses move frames (`send_raw`, `receive_frame`); everything typed is here.
+    """
+
+    address: str
+    timeout_s: float
+    routing_id: bytes
+
+    @abstractmethod
+    def send_raw(self, frame: bytes) -> None:
+        """Send an already encoded frame (tests use it for malformed input)."""
+
+    @abstractmethod
+    def receive_frame(self, timeout_s: float | None = None) -> bytes:
+        """The reply frame to what was sent, within the deadline; raises `ServerUnavailable`."""
+
+    @abstractmethod
+    def drop(self) -> None:
+        """Forget the current connection (the next send opens a fresh one)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Close everything; never blocks."""
+
+    def request(self, message: Request, timeout_s: float | None = None) -> Reply:
+        """Send one request and return the reply; an `Error` reply raises `ServerError`."""
+        self.send(message)
+        return self.receive_checked(timeout_s)
+
+    def exchange(self, message: Request, timeout_s: float | None = None) -> Reply:
+        """Like `request`, but returns `Error` replies instead of raising."""
+        return self.exchange_raw(encode(message), timeout_s)
+
+    def exchange_raw(self, frame: bytes, timeout_s: float | None = None) -> Reply:
+        """Send an already encoded frame and return the decoded reply."""
+        self.send_raw(frame)
+        return self.receive(timeout_s)
+
+    def send(self, message: Request) -> None:
+        """First half of `request`: send, so that several servers can work at once."""
+        self.send_raw(encode(message))
+
+    def receive(self, timeout_s: float | None = None) -> Reply:
+        """Second half of `request`: the decoded reply to what `send` sent."""
+        frame = self.receive_frame(timeout_s)
+        try:
+            return decode_reply(frame)  # type: ignore[return-value]
+        except ProtocolError as exc:
+            self.drop()
+            raise MalformedReply(f"invalid reply from {self.address}: {exc}") from exc
+
+    def receive_checked(self, timeout_s: float | None = None) -> Reply:
+        """`receive`, raising `ServerError` for an `Error` reply (like `request`)."""
+        reply = self.receive(timeout_s)
+        if isinstance(reply, Error):
+            raise ServerError(reply.code, reply.message)
+        return reply
+
+    def hello(self, timeout_s: float | None = None, client: str = CLIENT_NAME) -> Welcome:
+        """Handshake: announce our protocol version and receive the server's schemas."""
+        reply = self.request(Hello(PROTOCOL_VERSION, client), timeout_s)
+        if not isinstance(reply, Welcome):
+            raise MalformedReply(f"expected welcome, got {reply.TYPE}")
+        return reply
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

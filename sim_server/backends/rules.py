@@ -1,0 +1,145 @@
+"""The driving rules every simulator behind the bridge applies alike, written once.
+
+How a requested acceleration is limited, when a lane-change command is refused, when a lane
+change under way is given up, and when an episode ends. A backend supplies what only its
+simulator knows (the speed limit, the lanes, its own gap check) and reports the verdicts in the
+observation's `AppliedAction`, `Events` and `reason`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from protocol.messages import AccelerationLimit, EndReason, LaneChangeRefusal, Observation
+from sim_server.backends.options import EpisodeOptions
+
+LANE_CHANGE_TIMEOUT_S = 5.0
+"""A commanded lane change not completed this long after it started is given up
+(`Events.lane_change_aborted`). SUMO drops a lane-change request it could not begin within the
+request's 2 s (the gap closed meanwhile); without a timeout the ego would wait for it forever."""
+
+_EPSILON_S = 1e-9
+"""Slack on time comparisons, so that a sum of 0.1 s steps reaches a whole number of seconds."""
+
+
+def limit_acceleration(
+    request: float, speed: float, limit: float, low: float, high: float, dt: float
+) -> tuple[float, AccelerationLimit | Literal[""]]:
+    """The acceleration to apply for `dt` seconds at `speed`, and which rule bound it ("" none).
+
+    Clipped to the action's bounds [`low`, `high`], then lowered so that the next speed stays
+    within the speed `limit` (never below `low`), then raised so that it does not go below 0.
+    """
+    applied = min(max(request, low), high)
+    why: AccelerationLimit | Literal[""] = AccelerationLimit.BOUNDS if applied != request else ""
+    if speed + applied * dt > limit:
+        applied, why = max((limit - speed) / dt, low), AccelerationLimit.SPEED_LIMIT
+    if speed + applied * dt < 0.0:
+        applied, why = -speed / dt, AccelerationLimit.STANDSTILL
+    return applied, why
+
+
+@dataclass(frozen=True, slots=True)
+class LaneChangeUnderWay:
+    """A commanded lane change under way, from the step that started it until it completes or
+    is given up."""
+
+    target: int
+    """The lane the ego moves to, in the simulator's own numbering."""
+    direction: int
+    """As commanded and reported in `Ego.changing_lane`: 1 left, -1 right."""
+    started: float
+    """Simulation time of the step that started it (s)."""
+
+    def expired(self, now: float) -> bool:
+        """Not completed within `LANE_CHANGE_TIMEOUT_S`: give it up."""
+        return now - self.started >= LANE_CHANGE_TIMEOUT_S - _EPSILON_S
+
+
+def lane_change_refusal(
+    direction: int,
+    *,
+    simulator_drives: bool,
+    under_way: LaneChangeUnderWay | None,
+    ego_lane: Callable[[], tuple[int, int]],
+    gap_ok: Callable[[int], bool],
+) -> LaneChangeRefusal | Literal[""]:
+    """Why a lane change in `direction` (1 left, -1 right, 0 none) must not start now, or "".
+
+    The first rule that applies, in this order: the simulator drives the ego; a lane change is
+    still under way; there is no lane on that side (`ego_lane` gives the ego's lane, counted
+    from 0 at the rightmost, and the number of lanes); the simulator's own gap check `gap_ok`
+    fails. `ego_lane` and `gap_ok` are called only when their rule is reached: each may cost a
+    query of the simulator.
+    """
+    if not direction:
+        return ""
+    if simulator_drives:
+        return LaneChangeRefusal.SIMULATOR_DRIVES
+    if under_way is not None:
+        return LaneChangeRefusal.IN_PROGRESS
+    lane, lane_count = ego_lane()
+    if not 0 <= lane + direction < lane_count:
+        return LaneChangeRefusal.NO_LANE
+    if not gap_ok(direction):
+        return LaneChangeRefusal.GAP_TOO_SMALL
+    return ""
+
+
+class EndRule:
+    """When an episode ends, judged on each observation after a step.
+
+    In this order: a collision; the end of the road; an unreasonable stop (slower than
+    ``stop_speed`` for ``stop_patience`` seconds, with no leader or one more than ``stop_gap``
+    ahead and faster); ``max_episode_time`` seconds after the ego's entry (the only truncation).
+    """
+
+    __slots__ = (
+        "_entry_time",
+        "_stop_gap",
+        "_stop_patience",
+        "_stop_speed",
+        "_time_limit",
+        "stopped_since",
+    )
+
+    def __init__(self, options: EpisodeOptions, entry_time: float) -> None:
+        self._stop_speed = options.stop_speed
+        self._stop_gap = options.stop_gap
+        self._stop_patience = options.stop_patience - _EPSILON_S
+        self._entry_time = entry_time
+        self._time_limit = options.max_episode_time - _EPSILON_S
+        self.stopped_since: float | None = None
+        """Time of the first observation of the current stop (None: not stopped)."""
+
+    def check(self, obs: Observation) -> EndReason | None:
+        """The reason the episode ends with `obs`, or None while it goes on."""
+        if obs.events.collision:
+            return EndReason.COLLISION
+        if obs.events.end_of_road:
+            return EndReason.END_OF_ROAD
+        if self._stopped(obs):
+            return EndReason.STOPPED
+        if obs.time - self._entry_time >= self._time_limit:
+            return EndReason.TIME_LIMIT
+        return None
+
+    def _stopped(self, obs: Observation) -> bool:
+        leader = obs.neighbours.leader
+        speed = obs.ego.speed
+        if speed < self._stop_speed and (
+            not leader.present or (leader.gap > self._stop_gap and speed < leader.speed)
+        ):
+            if self.stopped_since is None:
+                self.stopped_since = obs.time
+            return obs.time - self.stopped_since >= self._stop_patience
+        self.stopped_since = None
+        return False
+
+
+def ended(obs: Observation, reason: EndReason) -> Observation:
+    """`obs` as the last observation of its episode, terminated or truncated for `reason`."""
+    terminates = reason.terminates
+    return replace(obs, terminated=terminates, truncated=not terminates, reason=reason)

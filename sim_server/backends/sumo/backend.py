@@ -1,0 +1,611 @@
+"""SUMO behind the bridge: in-process through libsumo, or over TraCI to a sumo / sumo-gui process.
+
+libsumo and TraCI have the same API, so one `SumoBackend` drives either: ``libsumo`` (the
+default, one simulation per process, fastest) or a TraCI `Connection` to a ``sumo`` or
+``sumo-gui`` process it starts from the eclipse-sumo wheel (or attaches to, on a port), to watch
+the ego in the GUI or to share the simulation with another TraCI tool.
+
+The ego is driven entirely by the client: speed mode 32 switches SUMO's safety checks off (the
+agent can crash and must learn not to), lane-change mode 512 stops SUMO's own lane changes but
+keeps its gap check on requested ones (a refused change is the paper's state G). Actions are
+clipped to the announced bounds and to the road's speed limit here, because speed mode 32 would
+obey anything. Collisions are real overlaps (``collision.mingap-factor 0``) and are checked before
+arrival, so a crash at the end of the road is still a crash.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from protocol.errors import ErrorCode
+from protocol.messages import (
+    AccelerationLimit,
+    AppliedAction,
+    Ego,
+    EndReason,
+    Events,
+    LeaderTrip,
+    Neighbour,
+    Neighbours,
+    Observation,
+    OptionValue,
+    ScenarioInfo,
+)
+from sim_server.backends.base import Backend
+from sim_server.backends.options import EpisodeOptions, TrafficOptions
+from sim_server.backends.rules import (
+    EndRule,
+    LaneChangeUnderWay,
+    ended,
+    lane_change_refusal,
+    limit_acceleration,
+)
+from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
+from sim_server.backends.sumo.scenarios import (
+    BUILTIN_SCENARIOS,
+    EGO_ID,
+    EGO_ROUTE,
+    EGO_TYPE,
+    HUMAN_TYPE,
+    CustomScenario,
+    RoadScenario,
+    Scenario,
+    build_road,
+    default_cache_dir,
+)
+from sim_server.errors import BackendError
+
+SPEED_MODE_NO_CHECKS = 32
+LANE_CHANGE_MODE_REQUESTS_ONLY = 512
+CEILING_HORIZON = 3600.0
+"""Longest extra simulated time (s) spent waiting for the leader-at-entry to arrive."""
+
+# Command-line options forced on every scenario, also a user's own .sumocfg.
+_FORCED_ARGS = [
+    "--collision.action", "warn",
+    "--collision.mingap-factor", "0",
+    "--time-to-teleport", "-1",
+    "--lanechange.duration", "2",
+    "--no-step-log", "true",
+    "--no-warnings", "true",
+]  # fmt: skip
+
+_ABSENT = Neighbour(present=False, gap=0.0, lateral=0.0, speed=0.0)
+_QUIET = Events()
+"""The events of most steps (nothing happened); immutable, so shared."""
+
+
+@dataclass
+class _Episode:
+    """Book-keeping of the running episode."""
+
+    dt: float
+    substeps: int
+    options: EpisodeOptions
+    end: EndRule
+    entry_offset: float
+    route_length: float
+    leader_id: str
+    leader_depart: float
+    leader_arrival: float | None = None
+    sumo_drives: bool = False
+    one_way: bool = False
+    """A built-in road: no lane beyond its edge's outer lanes (no opposite-direction lanes)."""
+    lane_change: LaneChangeUnderWay | None = None
+    done: bool = False
+    last: Observation | None = None
+    ego_min_gap: float = 0.0
+    lanes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    """Lane id -> (its index, the lane count of its edge): neither changes during a run."""
+    min_gaps: dict[str, float] = field(default_factory=dict)
+    """Vehicle id -> its minGap (fixed by its type)."""
+
+
+class SumoBackend(Backend):
+    """Runs SUMO scenarios; reset reloads the running SUMO when it can.
+
+    By default SUMO runs in this process through libsumo. With ``traci=True`` it runs in a
+    ``sumo`` process (``sumo-gui`` with ``gui=True``) driven over TraCI, or, with `traci_port`,
+    in a SUMO another tool started with ``--remote-port``. Same scenarios, same observations.
+    """
+
+    name = "sumo"
+
+    def __init__(
+        self,
+        cache_dir: Path | None = None,
+        custom: tuple[CustomScenario, ...] = (),
+        restart_every: int = 50,
+        *,
+        traci: bool = False,
+        gui: bool = False,
+        traci_port: int | None = None,
+        traci_host: str = "localhost",
+        sumo_binary: str | None = None,
+    ) -> None:
+        if not traci and (gui or traci_port is not None or sumo_binary is not None):
+            raise ValueError("gui, traci_port and sumo_binary need traci=True")
+        if gui and traci_port is not None:
+            raise ValueError("gui starts its own sumo-gui: it cannot attach to a port")
+        if gui:
+            check_display()
+        self._cache_dir = cache_dir or default_cache_dir()
+        self._scenarios: dict[str, Scenario] = {**BUILTIN_SCENARIOS}
+        for scenario in custom:
+            self._scenarios[scenario.name] = scenario
+        over_traci = OverTraci(gui, traci_port, traci_host, sumo_binary) if traci else None
+        self._sumo: InProcess | OverTraci = over_traci or InProcess()
+        self.name = self._sumo.name
+        self._errors = self._sumo.errors
+        self._api: Any = None
+        self._restart_every = restart_every
+        self._loads = 0
+        self._running = False
+        self._episode: _Episode | None = None
+        self._absent = replace(_ABSENT, gap=self.sensor_range)
+        if over_traci is not None and traci_port is not None:
+            try:
+                self._api = over_traci.attach()
+            except self._errors as exc:
+                where = f"{traci_host}:{traci_port}"
+                raise ValueError(f"cannot attach to SUMO at {where}: {exc}") from exc
+            self._running = True
+        self._version = self._sumo.version()
+
+    @property
+    def version(self) -> str:
+        return self._version
+
+    def scenarios(self) -> tuple[ScenarioInfo, ...]:
+        return tuple(s.info() for s in self._scenarios.values())
+
+    # ----------------------------------------------------------------------- reset
+
+    def reset(self, scenario: str, seed: int, options: dict[str, OptionValue]) -> Observation:
+        chosen = self._scenarios[scenario]
+        episode_options = EpisodeOptions.parse(options)
+        traffic = TrafficOptions.parse(options) if isinstance(chosen, RoadScenario) else None
+        self._episode = None
+        try:
+            config, route = self._files(chosen, traffic)
+            self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS])
+            return self._insert_ego(route, episode_options, one_way=traffic is not None)
+        except self._errors as exc:
+            self._broken(exc)
+            raise BackendError(
+                ErrorCode.SIMULATOR_ERROR, f"SUMO failed during reset: {exc}"
+            ) from exc
+
+    def _files(self, scenario: Scenario, traffic: TrafficOptions | None) -> tuple[Path, str]:
+        if isinstance(scenario, RoadScenario):
+            assert traffic is not None
+            try:
+                return build_road(scenario, traffic, self._cache_dir), EGO_ROUTE
+            except (OSError, RuntimeError) as exc:
+                raise BackendError(
+                    ErrorCode.SIMULATOR_ERROR, f"could not build scenario {scenario.name}: {exc}"
+                ) from exc
+        return scenario.sumocfg, scenario.ego_route
+
+    def _load(self, args: list[str]) -> None:
+        if self._running and (self._loads < self._restart_every or not self._sumo.restarts):
+            self._sumo.load(self._api, args)
+            self._loads += 1
+            return
+        if self._running:
+            self._sumo.close(self._api)
+            self._running = False
+        self._api = self._sumo.start(args)
+        self._running = True
+        self._loads = 0
+
+    def _insert_ego(self, route: str, options: EpisodeOptions, one_way: bool) -> Observation:
+        """Warm up, insert the ego at the start of `route` and observe it (seq 0)."""
+        api = self._api
+        dt = api.simulation.getDeltaT()
+        substeps = options.steps_per_decision(dt)
+        api.simulationStep(api.simulation.getTime() + options.warmup)
+        self._add_ego(route, options.simulator_drives)
+        self._wait_for_entry(options.insertion_timeout)
+        edges = api.vehicle.getRoute(EGO_ID)
+        route_length = sum(api.lane.getLength(f"{edge}_0") for edge in edges)
+        leader_id, _ = api.vehicle.getLeader(EGO_ID, route_length) or ("", 0.0)
+        self._episode = _Episode(
+            dt=dt,
+            substeps=substeps,
+            options=options,
+            end=EndRule(options, entry_time=api.simulation.getTime()),
+            entry_offset=api.vehicle.getLanePosition(EGO_ID),
+            route_length=route_length,
+            leader_id=leader_id,
+            leader_depart=api.vehicle.getDeparture(leader_id) if leader_id else math.nan,
+            sumo_drives=options.simulator_drives,
+            one_way=one_way,
+            ego_min_gap=api.vehicle.getMinGap(EGO_ID),
+        )
+        action = AppliedAction(0.0, 0, 0.0, 0)
+        return self._observe(self._episode, 0, Events(), action)
+
+    def _add_ego(self, route: str, sumo_drives: bool) -> None:
+        """Ask SUMO to insert the ego now: the client's (SUMO's checks off) or a human."""
+        api = self._api
+        types = api.vehicletype.getIDList()
+        if sumo_drives:  # a human driver of the scenario, driven by SUMO, observed by the client
+            type_id = HUMAN_TYPE if HUMAN_TYPE in types else "DEFAULT_VEHTYPE"
+        else:
+            type_id = EGO_TYPE
+            if EGO_TYPE not in types:
+                self._define_ego_type()
+        api.vehicle.add(
+            EGO_ID, route, typeID=type_id, depart="now",
+            departLane="random", departPos="base", departSpeed="max",
+        )  # fmt: skip
+        if not sumo_drives:
+            api.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
+            api.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
+
+    def _wait_for_entry(self, timeout: float) -> None:
+        """Step until the ego has entered; give up after `timeout` s of simulation."""
+        api = self._api
+        deadline = api.simulation.getTime() + timeout
+        while EGO_ID not in api.simulation.getDepartedIDList():
+            if api.simulation.getTime() >= deadline:
+                api.vehicle.remove(EGO_ID)
+                raise BackendError(
+                    ErrorCode.INSERTION_FAILED,
+                    f"the ego could not enter within {timeout} s "
+                    "(road too full at the entry); try a lower flow or another seed",
+                )
+            api.simulationStep()
+
+    def _define_ego_type(self) -> None:
+        """A user's .sumocfg has no ego type: derive one like the built-in scenarios'."""
+        api = self._api
+        api.vehicletype.copy("DEFAULT_VEHTYPE", EGO_TYPE)
+        api.vehicletype.setImperfection(EGO_TYPE, 0.0)
+        api.vehicletype.setSpeedFactor(EGO_TYPE, 1.0)
+        api.vehicletype.setSpeedDeviation(EGO_TYPE, 0.0)
+        api.vehicletype.setAccel(EGO_TYPE, 3.0)
+        api.vehicletype.setDecel(EGO_TYPE, 6.0)
+        api.vehicletype.setEmergencyDecel(EGO_TYPE, 9.0)
+
+    # ----------------------------------------------------------------------- step
+
+    def step(self, seq: int, acceleration: float, lane_change: int) -> Observation:
+        episode = self._episode
+        if episode is None or episode.done:
+            raise BackendError(ErrorCode.OUT_OF_ORDER, "no running episode: send reset first")
+        try:
+            return self._step(episode, seq, acceleration, lane_change)
+        except self._errors as exc:
+            self._broken(exc)
+            raise BackendError(
+                ErrorCode.SIMULATOR_ERROR, f"SUMO failed during step: {exc}"
+            ) from exc
+
+    def _step(self, episode: _Episode, seq: int, request: float, lane_change: int) -> Observation:
+        refused = self._lane_change_refusal(episode, lane_change) if lane_change else ""
+        started = bool(lane_change) and not refused
+        if started:
+            self._start_lane_change(episode, lane_change)
+        action, events = self._drive(episode, request, lane_change, refused, started)
+        return self._conclude(episode, seq, events, action)
+
+    def _lane_change_refusal(self, episode: _Episode, direction: int) -> str:
+        return lane_change_refusal(
+            direction,
+            simulator_drives=episode.sumo_drives,
+            under_way=episode.lane_change,
+            ego_lane=lambda: self._lane(episode),
+            gap_ok=self._could_change_lane,
+        )
+
+    def _could_change_lane(self, direction: int) -> bool:
+        """SUMO's own gap check of a requested change (lane-change mode 512 keeps it)."""
+        return bool(self._api.vehicle.couldChangeLane(EGO_ID, direction))
+
+    def _start_lane_change(self, episode: _Episode, direction: int) -> None:
+        """Ask SUMO for the change: the request stands for 2 s, the manoeuvre takes 2 s
+        (``--lanechange.duration``)."""
+        target = self._lane(episode)[0] + direction
+        self._api.vehicle.changeLane(EGO_ID, target, 2.0)
+        now = self._api.simulation.getTime()
+        episode.lane_change = LaneChangeUnderWay(target, direction, now)
+
+    def _drive(
+        self, episode: _Episode, request: float, lane_change: int, refused: str, started: bool
+    ) -> tuple[AppliedAction, Events]:
+        """Run the decision's simulation steps; stop early at a collision or the ego's arrival."""
+        api = self._api
+        applied_total, limited_by = 0.0, ""
+        collision_with, end_of_road, teleported = "", False, False
+        completed = aborted = False
+        substeps_done = 0
+        for _ in range(episode.substeps):
+            applied, why = self._substep(episode, request)
+            applied_total += applied
+            limited_by = limited_by or why
+            substeps_done += 1
+            collision_with = _collision_partner(api.simulation.getCollisions())
+            arrived = api.simulation.getArrivedIDList()
+            if episode.leader_arrival is None and episode.leader_id in arrived:
+                episode.leader_arrival = api.simulation.getTime()
+            teleported = teleported or EGO_ID in api.simulation.getStartingTeleportIDList()
+            if collision_with:
+                break
+            if EGO_ID in arrived:
+                end_of_road = True
+                break
+            if episode.lane_change is not None:
+                completed, aborted = self._lane_change_progress(episode, episode.lane_change)
+        action = AppliedAction(
+            requested_acceleration=request,
+            requested_lane_change=lane_change,
+            acceleration=applied_total / substeps_done,
+            lane_change=0 if refused else lane_change,
+            acceleration_limited_by=limited_by,
+            lane_change_refused=refused,
+        )
+        events = (
+            Events(
+                collision=bool(collision_with),
+                collision_with=collision_with,
+                end_of_road=end_of_road,
+                lane_change_started=started,
+                lane_change_completed=completed,
+                lane_change_refused=bool(refused),
+                teleported=teleported,
+                lane_change_aborted=aborted,
+            )
+            if any((collision_with, end_of_road, started, completed, aborted, refused, teleported))
+            else _QUIET
+        )
+        return action, events
+
+    def _substep(self, episode: _Episode, request: float) -> tuple[float, str]:
+        """One simulation step: the applied acceleration and what limited it ("" nothing)."""
+        api = self._api
+        if episode.sumo_drives:
+            api.simulationStep()
+            gone = EGO_ID in api.simulation.getArrivedIDList()
+            return 0.0 if gone else api.vehicle.getAcceleration(EGO_ID), AccelerationLimit.SIMULATOR
+        vehicle = api.vehicle
+        applied, why = limit_acceleration(
+            request,
+            vehicle.getSpeed(EGO_ID),
+            vehicle.getAllowedSpeed(EGO_ID),
+            self.action_schema.acceleration_min,
+            self.action_schema.acceleration_max,
+            episode.dt,
+        )
+        vehicle.setAcceleration(EGO_ID, applied, episode.dt)
+        api.simulationStep()
+        return applied, why
+
+    def _lane_change_progress(
+        self, episode: _Episode, change: LaneChangeUnderWay
+    ) -> tuple[bool, bool]:
+        """(completed, aborted) of the lane change under way; either ends it."""
+        vehicle = self._api.vehicle
+        if (
+            vehicle.getLaneIndex(EGO_ID) == change.target
+            and abs(vehicle.getLateralLanePosition(EGO_ID)) < 1e-6
+        ):
+            episode.lane_change = None
+            return True, False
+        if change.expired(self._api.simulation.getTime()):
+            episode.lane_change = None
+            return False, True
+        return False, False
+
+    def _conclude(
+        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+    ) -> Observation:
+        """The observation after a step, the last one of the episode if a rule ends it."""
+        if events.end_of_road:
+            arrival = self._arrival_observation(episode, seq, events, action)
+            return self._finish(episode, ended(arrival, EndReason.END_OF_ROAD))
+        obs = None if events.teleported else self._observe_if_present(episode, seq, events, action)
+        if obs is None:  # gone without arriving
+            lost = self._arrival_observation(episode, seq, events, action)
+            return self._finish(episode, ended(lost, EndReason.EGO_LOST))
+        reason = episode.end.check(obs)
+        return obs if reason is None else self._finish(episode, ended(obs, reason))
+
+    def _observe_if_present(
+        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+    ) -> Observation | None:
+        """The observation, or None if the ego has left without arriving (its state cannot be
+        read)."""
+        try:
+            return self._observe(episode, seq, events, action)
+        except self._errors:
+            if EGO_ID in self._api.vehicle.getIDList():
+                raise
+            return None
+
+    def _finish(self, episode: _Episode, obs: Observation) -> Observation:
+        """End the episode: take the ego out and report the leader-at-entry's trip."""
+        api = self._api
+        episode.done = True
+        if EGO_ID in api.vehicle.getIDList():
+            api.vehicle.remove(EGO_ID)
+        if episode.options.report_ceiling:
+            obs = replace(obs, ceiling=self._leader_trip(episode))
+        return obs
+
+    def _leader_trip(self, episode: _Episode) -> LeaderTrip | None:
+        api = self._api
+        if not episode.leader_id:
+            return None
+        end = api.simulation.getTime() + CEILING_HORIZON
+        while episode.leader_arrival is None and api.simulation.getTime() < end:
+            api.simulationStep()
+            if episode.leader_id in api.simulation.getArrivedIDList():
+                episode.leader_arrival = api.simulation.getTime()
+        arrival = episode.leader_arrival
+        average = (
+            None if arrival is None else episode.route_length / (arrival - episode.leader_depart)
+        )
+        return LeaderTrip(episode.leader_id, episode.leader_depart, arrival, average)
+
+    # ----------------------------------------------------------------------- observation
+
+    def _lane(self, episode: _Episode, lane_id: str | None = None) -> tuple[int, int]:
+        """The ego's lane index and the number of lanes of its edge (one query when cached)."""
+        api = self._api
+        if lane_id is None:
+            lane_id = api.vehicle.getLaneID(EGO_ID)
+        known = episode.lanes.get(lane_id)
+        if known is None:
+            road = api.lane.getEdgeID(lane_id)
+            known = episode.lanes[lane_id] = (
+                api.vehicle.getLaneIndex(EGO_ID),
+                api.edge.getLaneNumber(road),
+            )
+        return known
+
+    def _observe(
+        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+    ) -> Observation:
+        vehicle = self._api.vehicle
+        speed = vehicle.getSpeed(EGO_ID)  # first: raises if the ego has gone
+        acceleration = vehicle.getAcceleration(EGO_ID)
+        lane_id = vehicle.getLaneID(EGO_ID)
+        lane, lane_count = self._lane(episode, lane_id)
+        ego = Ego(
+            speed=speed,
+            acceleration=acceleration,
+            lane=lane,
+            lane_count=lane_count,
+            position=episode.entry_offset + vehicle.getDistance(EGO_ID),
+            speed_limit=self._api.lane.getMaxSpeed(lane_id),
+            changing_lane=0 if episode.lane_change is None else episode.lane_change.direction,
+        )
+        x, y = vehicle.getPosition(EGO_ID)
+        heading = math.radians(vehicle.getAngle(EGO_ID))
+        frame = (x, y, -math.cos(heading), math.sin(heading))
+        ego_min_gap = episode.ego_min_gap
+        sensed = self.sensor_range
+        leader = vehicle.getLeader(EGO_ID, sensed)
+        follower = vehicle.getFollower(EGO_ID, sensed)
+        # SUMO finds no neighbour where there is no lane: on a built-in road, skip those queries.
+        left = not episode.one_way or lane + 1 < lane_count
+        right = not episode.one_way or lane > 0
+        nearest, none = self._nearest, ()
+        neighbours = Neighbours(
+            left_leader=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b010) if left else none, ego_min_gap, frame
+            ),
+            left_follower=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b000) if left else none, None, frame
+            ),
+            leader=nearest(
+                episode, (leader,) if leader and leader[0] else none, ego_min_gap, frame
+            ),
+            follower=nearest(
+                episode, (follower,) if follower and follower[0] else none, None, frame
+            ),
+            right_leader=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b011) if right else none, ego_min_gap, frame
+            ),
+            right_follower=nearest(
+                episode, vehicle.getNeighbors(EGO_ID, 0b001) if right else none, None, frame
+            ),
+        )
+        obs = Observation(
+            seq=seq,
+            time=self._api.simulation.getTime(),
+            ego=ego,
+            neighbours=neighbours,
+            events=events,
+            action=action,
+        )
+        episode.last = obs
+        return obs
+
+    def _nearest(
+        self,
+        episode: _Episode,
+        found: Any,
+        ego_min_gap: float | None,
+        frame: tuple[float, float, float, float],
+    ) -> Neighbour:
+        """The closest of (id, distance) pairs as a Neighbour with the net bumper gap.
+
+        SUMO's leader distance excludes the ego's minGap, its follower distance the follower's:
+        `ego_min_gap` is given for leaders, None for followers.
+        """
+        api = self._api
+        if not found:
+            return self._absent
+        other, distance = found[0] if len(found) == 1 else min(found, key=_second)
+        if ego_min_gap is None:
+            min_gap = episode.min_gaps.get(other)
+            if min_gap is None:
+                min_gap = episode.min_gaps[other] = api.vehicle.getMinGap(other)
+            gap = distance + min_gap
+        else:
+            gap = distance + ego_min_gap
+        if gap > self.sensor_range:
+            return self._absent
+        x, y, normal_x, normal_y = frame
+        other_x, other_y = api.vehicle.getPosition(other)
+        lateral = (other_x - x) * normal_x + (other_y - y) * normal_y
+        return Neighbour(True, gap, lateral, api.vehicle.getSpeed(other), other)
+
+    def _arrival_observation(
+        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+    ) -> Observation:
+        """The ego has left the network: extrapolate its last observed state by one decision."""
+        last = episode.last
+        assert last is not None
+        elapsed = episode.dt * episode.substeps
+        ego = replace(
+            last.ego,
+            speed=max(0.0, last.ego.speed + action.acceleration * elapsed),
+            acceleration=action.acceleration,
+            position=episode.route_length,
+        )
+        return replace(
+            last,
+            seq=seq,
+            time=self._api.simulation.getTime(),
+            ego=ego,
+            events=events,
+            action=action,
+        )
+
+    # ----------------------------------------------------------------------- lifecycle
+
+    def _broken(self, error: BaseException | None = None) -> None:
+        """After a SUMO failure, start afresh on the next reset."""
+        self._episode = None
+        if error is not None and self._sumo.survives(error):
+            return  # the next reset reloads the same SUMO
+        if self._running:
+            with contextlib.suppress(*self._errors):  # already gone: start() will follow
+                self._sumo.close(self._api)
+        self._running = False
+
+    def close(self) -> None:
+        self._broken()
+
+
+def _second(pair: tuple[str, float]) -> float:
+    return pair[1]
+
+
+def _collision_partner(collisions: Any) -> str:
+    """The vehicle the ego collided with in this simulation step, or ""."""
+    partner = ""
+    for collision in collisions:
+        if collision.collider == EGO_ID:
+            partner = collision.victim
+        elif collision.victim == EGO_ID:
+            partner = collision.collider
+    return partner

@@ -1,0 +1,132 @@
+"""The ZeroMQ serving loop: one ROUTER socket in front of one `Session`.
+
+The loop moves frames between the socket and the session, tells the session when its client's
+connection is gone (killed, or silent past ZeroMQ's heartbeat timeout) and watches for shutdown.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import zmq
+from zmq.utils.monitor import parse_monitor_message
+
+from protocol.codec import encode
+from protocol.errors import ErrorCode
+from protocol.messages import Error
+from protocol.transport.security import ServerCredentials, start_authenticator
+from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS, bind_router, remove_ipc_file
+from sim_server.serve.lifecycle import StopFlag
+from sim_server.session import Session
+
+log = logging.getLogger("sim_server")
+
+POLL_INTERVAL_MS = 100
+
+
+class Server(StopFlag):
+    """Binds the socket and pumps frames through a `Session` until stopped."""
+
+    def __init__(
+        self,
+        session: Session,
+        address: str,
+        credentials: ServerCredentials | None = None,
+        heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_MS / 1000,
+    ) -> None:
+        super().__init__()
+        self.session = session
+        self.address = address
+        self._context = zmq.Context()
+        self._authenticator = (
+            start_authenticator(self._context, credentials) if credentials is not None else None
+        )
+        try:
+            self._socket, self.endpoint = bind_router(
+                self._context, address, credentials, int(heartbeat_timeout_s * 1000)
+            )
+        except Exception:
+            self._release_context()
+            raise
+        self._monitor = self._socket.get_monitor_socket(zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED)
+        self._owner_fd: int | None = None
+        self._closed_fds: set[int] = set()
+        """Connections reported closed (and not reused since): a request read from one of them
+        was sent before its client died and must not mark the client connected again."""
+
+    def serve(self) -> None:
+        """Serve requests until `stop`; always releases the socket and the backend."""
+        socket, monitor = self._socket, self._monitor
+        watched = [(socket, zmq.POLLIN), (monitor, zmq.POLLIN)]
+        try:
+            while not self._stop.is_set():
+                ready = {s for s, _ in zmq.zmq_poll(watched, POLL_INTERVAL_MS)}
+                if socket in ready:  # data first: a request a client sent before it died...
+                    self._answer()
+                if monitor in ready:  # ...comes before the news of its disconnection
+                    self._read_events()
+        finally:
+            self.close()
+
+    def _read_events(self) -> None:
+        while self._monitor.poll(0):
+            event = parse_monitor_message(self._monitor.recv_multipart())
+            fd = event["value"]
+            if event["event"] == zmq.EVENT_ACCEPTED:
+                self._closed_fds.discard(fd)  # the descriptor now names a new connection
+            elif event["event"] == zmq.EVENT_DISCONNECTED:
+                self._closed_fds.add(fd)
+                if fd == self._owner_fd:
+                    self._owner_fd = None
+                    self.session.owner_disconnected()
+
+    def _answer(self) -> None:
+        # A REQ peer sends [routing id, request id, b"", payload]; keep the envelope, answer the
+        # payload. Only the first frame is received as a zmq.Frame, for the connection's fd.
+        socket = self._socket
+        head = socket.recv(copy=False)
+        parts = [head.bytes]
+        while socket.rcvmore:
+            parts.append(socket.recv())
+        try:
+            split = parts.index(b"", 1) + 1
+        except ValueError:
+            split = 1
+        envelope, body = parts[:split], parts[split:]
+        if len(body) != 1:
+            reply = encode(
+                Error(ErrorCode.DECODE_ERROR.value, f"expected one frame, got {len(body)}")
+            )
+        else:
+            reply = self.session.handle(parts[0], body[0])
+            if self.session.owner == parts[0]:
+                fd = _source_fd(head)
+                self._read_events()  # up to date: was this descriptor closed, or reused since?
+                if fd is not None and fd in self._closed_fds:
+                    self.session.owner_disconnected()  # its connection is already gone
+                else:
+                    self._owner_fd = fd
+        socket.send_multipart([*envelope, reply])
+
+    def close(self) -> None:
+        if self._socket.closed:
+            return
+        self._socket.disable_monitor()
+        self._monitor.close(linger=0)
+        self._socket.close(linger=0)
+        self._release_context()
+        remove_ipc_file(self.endpoint)
+        self.session.backend.close()
+
+    def _release_context(self) -> None:
+        if self._authenticator is not None:
+            self._authenticator.stop()
+        self._context.term()
+
+
+def _source_fd(frame: zmq.Frame) -> int | None:
+    """The file descriptor of the connection a frame came in on (None if unavailable)."""
+    try:
+        return int(frame.get(zmq.SRCFD))
+    except (zmq.ZMQError, AttributeError, TypeError, ValueError):
+        return None

@@ -1,0 +1,239 @@
+"""The protocol's state machine: hello, reset, step..., close, in front of one backend.
+
+`Session.handle` turns one request frame into one reply frame and never raises: every fault of
+the client becomes an `Error` reply and the server goes on serving. The serving loops
+(`sim_server.serve`) move frames between a transport and the session.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import time
+from dataclasses import dataclass
+
+from protocol.codec import DEFAULT_MAX_FRAME_BYTES, decode_request, encode
+from protocol.errors import ErrorCode, ProtocolError
+from protocol.messages import (
+    Bye,
+    Close,
+    Error,
+    Hello,
+    Message,
+    OptionValue,
+    Reset,
+    ScenarioInfo,
+    Step,
+    Welcome,
+)
+from protocol.schema import OBSERVATION_FIELDS
+from protocol.version import PROTOCOL_VERSION, format_version, is_compatible
+from sim_server import __version__
+from sim_server.backends.base import Backend
+from sim_server.errors import BackendError
+
+log = logging.getLogger("sim_server")
+
+DEFAULT_SESSION_TIMEOUT_S = 600.0
+"""Silence after which another client may take over a client that is still connected."""
+
+
+@dataclass
+class _Episode:
+    """Sequence state of the running (or just finished) episode."""
+
+    last_seq: int
+    last_reply: bytes
+    running: bool
+
+
+class Session:
+    """Protocol state machine in front of a backend: hello, reset, step..., close."""
+
+    def __init__(
+        self,
+        backend: Backend,
+        max_frame_bytes: int = DEFAULT_MAX_FRAME_BYTES,
+        session_timeout_s: float = DEFAULT_SESSION_TIMEOUT_S,
+    ) -> None:
+        self.backend = backend
+        self.max_frame_bytes = max_frame_bytes
+        self.session_timeout_s = session_timeout_s
+        self._scenarios: dict[str, ScenarioInfo] = {s.name: s for s in backend.scenarios()}
+        self._welcome = encode(
+            Welcome(
+                protocol=PROTOCOL_VERSION,
+                server=f"sim_server {__version__}",
+                backend=backend.name,
+                backend_version=backend.version,
+                scenarios=tuple(self._scenarios.values()),
+                observation_fields=OBSERVATION_FIELDS,
+                action=backend.action_schema,
+                sensor_range=backend.sensor_range,
+                max_frame_bytes=max_frame_bytes,
+            )
+        )
+        self.owner: bytes | None = None
+        self.owner_connected = False
+        self._last_seen = 0.0
+        self._episode: _Episode | None = None
+
+    # ----------------------------------------------------------------------- dispatch
+
+    def handle(self, peer: bytes, frame: bytes, now: float | None = None) -> bytes:
+        """Answer one request frame from `peer` with one reply frame."""
+        now = time.monotonic() if now is None else now
+        try:
+            request = decode_request(frame, self.max_frame_bytes)
+            self._check_owner(peer, request, now)
+            reply = self._dispatch(peer, request)
+            self._last_seen = now
+            if peer == self.owner:
+                self.owner_connected = True
+            return reply
+        except ProtocolError as exc:
+            return encode(Error(exc.code.value, exc.message))
+        except BackendError as exc:
+            return encode(Error(exc.code.value, exc.message))
+        except Exception:  # a backend bug must not take the server down
+            log.exception("unexpected failure while handling a request")
+            if self._episode is not None:
+                self._episode.running = False
+            return encode(
+                Error(
+                    ErrorCode.SIMULATOR_ERROR.value, "internal simulator error; see the server log"
+                )
+            )
+
+    def owner_disconnected(self) -> None:
+        """The owner's connection is gone: another client's hello may take over at once.
+
+        The episode stays: the same client may come back on a fresh socket (its routing id is
+        kept) and retry its last step.
+        """
+        if self.owner is not None and self.owner_connected:
+            log.info("client disconnected; the simulator is free for the next client")
+        self.owner_connected = False
+
+    def _check_owner(self, peer: bytes, request: Message, now: float) -> None:
+        if self.owner is None or peer == self.owner:
+            return
+        if isinstance(request, Hello):
+            if not self.owner_connected:
+                log.info("a new client takes over from a disconnected one")
+                self._end_session()
+                return
+            if now - self._last_seen > self.session_timeout_s:
+                log.info("session of an idle client expired; a new client takes over")
+                self._end_session()
+                return
+        raise ProtocolError(
+            ErrorCode.BUSY,
+            "another client holds this simulator; start another server or retry later",
+        )
+
+    def _dispatch(self, peer: bytes, request: Message) -> bytes:
+        if isinstance(request, Hello):
+            return self._hello(peer, request)
+        if self.owner is None:
+            raise ProtocolError(
+                ErrorCode.OUT_OF_ORDER, f"{request.TYPE} before hello: say hello first"
+            )
+        if isinstance(request, Step):
+            return self._step(request)
+        if isinstance(request, Reset):
+            return self._reset(request)
+        if isinstance(request, Close):
+            self._end_session()
+            return encode(Bye())
+        raise ProtocolError(ErrorCode.UNKNOWN_TYPE, f"{request.TYPE} is not a request")
+
+    def _hello(self, peer: bytes, hello: Hello) -> bytes:
+        if not is_compatible(PROTOCOL_VERSION, hello.protocol):
+            raise ProtocolError(
+                ErrorCode.VERSION_MISMATCH,
+                f"client speaks protocol {format_version(hello.protocol)}, server speaks "
+                f"{format_version(PROTOCOL_VERSION)}: major versions must match",
+            )
+        if self.owner != peer:
+            log.info("hello from %s", _printable(hello.client) or "an unnamed client")
+        self.owner = peer
+        self._episode = None
+        return self._welcome
+
+    def _reset(self, reset: Reset) -> bytes:
+        info = self._scenarios.get(reset.scenario)
+        if info is None:
+            raise ProtocolError(
+                ErrorCode.UNKNOWN_SCENARIO,
+                f"unknown scenario {reset.scenario[:64]!r}; offered: {', '.join(self._scenarios)}",
+            )
+        options = _merge_options(info, reset.options)
+        seed = reset.seed if reset.seed is not None else secrets.randbelow(2**31)
+        if not 0 <= seed < 2**31:
+            raise ProtocolError(ErrorCode.INVALID_NUMBER, f"seed {seed} is outside 0..2^31-1")
+        self._episode = None
+        obs = self.backend.reset(reset.scenario, seed, options)
+        reply = encode(obs)
+        self._episode = _Episode(last_seq=0, last_reply=reply, running=True)
+        return reply
+
+    def _step(self, step: Step) -> bytes:
+        episode = self._episode
+        if episode is None:
+            raise ProtocolError(ErrorCode.OUT_OF_ORDER, "step before reset: send reset first")
+        if step.seq == episode.last_seq and step.seq > 0:
+            return episode.last_reply  # a retried step: answer again, do not advance
+        if not episode.running:
+            raise ProtocolError(ErrorCode.OUT_OF_ORDER, "the episode has ended: send reset")
+        if step.seq != episode.last_seq + 1:
+            raise ProtocolError(
+                ErrorCode.SEQUENCE_ERROR,
+                f"step seq {step.seq}: expected {episode.last_seq + 1} (or {episode.last_seq} "
+                "to repeat the last step)",
+            )
+        if step.lane_change not in (-1, 0, 1):
+            raise ProtocolError(
+                ErrorCode.INVALID_NUMBER, f"lane_change {step.lane_change} is not -1, 0 or 1"
+            )
+        try:
+            obs = self.backend.step(step.seq, step.acceleration, step.lane_change)
+        except BackendError:
+            episode.running = False
+            raise
+        reply = encode(obs)
+        episode.last_seq, episode.last_reply = step.seq, reply
+        episode.running = not (obs.terminated or obs.truncated)
+        return reply
+
+    def _end_session(self) -> None:
+        self.owner = None
+        self.owner_connected = False
+        self._episode = None
+
+
+def _printable(text: str, limit: int = 64) -> str:
+    """A client-chosen name made safe for one log line."""
+    cleaned = "".join(c if c.isprintable() else "?" for c in text[:limit])
+    return cleaned + ("..." if len(text) > limit else "")
+
+
+def _merge_options(info: ScenarioInfo, given: dict[str, OptionValue]) -> dict[str, OptionValue]:
+    """Scenario defaults overridden by the client's options, with names and types checked."""
+    merged = dict(info.options)
+    for name, value in given.items():
+        if name not in merged:
+            raise ProtocolError(
+                ErrorCode.INVALID_OPTION,
+                f"scenario {info.name} has no option {name[:64]!r}; options: {', '.join(merged)}",
+            )
+        default = merged[name]
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if default is not None and type(value) is not type(default):
+            raise ProtocolError(
+                ErrorCode.INVALID_OPTION,
+                f"option {name} must be {type(default).__name__}, got {type(value).__name__}",
+            )
+        merged[name] = value
+    return merged

@@ -1,0 +1,59 @@
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent_client.drivers.policy import ActionScale, load_policy_driver, save_policy
+from agent_client.drivers.spec import training_settings
+from agent_client.rl.features import FeatureMap, FeatureMismatch
+from agent_client.rl.td3 import Agent
+from protocol.messages import ActionSchema
+from tests.protocol.test_codec import make_observation
+
+
+def test_action_scale_maps_tanh_onto_asymmetric_bounds() -> None:
+    scale = ActionScale.from_schema(ActionSchema(-6.0, 3.0))
+    assert scale.to_env(-1.0) == -6.0
+    assert scale.to_env(1.0) == 3.0
+    assert scale.to_env(0.0) == -1.5
+    for a in (-6.0, -2.0, 0.0, 2.5, 3.0):
+        assert scale.to_env(scale.to_policy(a)) == pytest.approx(a)
+    assert scale.to_policy(10.0) == 1.0
+
+
+def test_a_saved_policy_drives_like_the_agent(tmp_path: Path) -> None:
+    features = FeatureMap("lc")
+    agent = Agent(features.dim, 3, seed=3)
+    scale = ActionScale(-6.0, 3.0)
+    save_policy(tmp_path / "policy.pt", agent, "lc", scale)
+    driver = load_policy_driver(tmp_path / "policy.pt")
+    obs = make_observation()
+    acceleration, lane_change = driver.act(obs)
+    u, lane = agent.act(features(obs), explore=False)
+    assert acceleration == pytest.approx(scale.to_env(u))
+    assert lane_change == (0, 1, -1)[lane]
+    assert np.isfinite(acceleration)
+
+
+def test_a_policy_of_an_older_feature_set_is_refused_with_the_reason(tmp_path: Path) -> None:
+    agent = Agent(FeatureMap("lc").dim + 1, 3, seed=3)  # as if "lc" had lost a feature since
+    save_policy(tmp_path / "policy.pt", agent, "lc", ActionScale(-6.0, 3.0))
+    with pytest.raises(FeatureMismatch, match=r"takes 24 features.*'lc' now has 23"):
+        load_policy_driver(tmp_path / "policy.pt")
+
+
+def test_training_settings_come_from_the_run_folder(tmp_path: Path) -> None:
+    (tmp_path / "config.json").write_text(
+        json.dumps(
+            {"scenario": "cflc", "decision_interval": 1.0, "scenario_options": {"flow": 900}}
+        )
+    )
+    assert training_settings(str(tmp_path / "policy.pt")) == (
+        "cflc",
+        {"decision_interval": 1.0, "flow": 900},
+    )
+    assert training_settings("idm") == (None, {})
+    assert training_settings(str(tmp_path / "elsewhere" / "policy.pt")) == (None, {})

@@ -1,0 +1,39 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agent_client.rl.features import GAP_CAP, FeatureMap
+from protocol.messages import Ego, Neighbour, Neighbours
+from tests.protocol.test_codec import make_observation
+
+
+def test_car_following_features_hand_computed() -> None:
+    features = FeatureMap("cf")
+    x = features(make_observation())  # ego 15 m/s, -0.5 m/s^2; leader 12.5 m ahead at 14 m/s
+    assert x.dtype == np.float32
+    assert features.dim == 6
+    assert x == pytest.approx([15 / 22.22, -0.5 / 3, 1.0, 0.125, -0.1, 12.5 / 15 / 5], rel=1e-5)
+
+
+def test_a_missing_leader_is_a_flag_not_a_huge_gap() -> None:
+    absent = Neighbour(False, 200.0, 0.0, 0.0)
+    obs = make_observation(neighbours=Neighbours(*(absent,) * 6))
+    x = FeatureMap("cf")(obs)
+    assert x[2] == 0.0
+    assert x[3] == GAP_CAP
+    assert x[5] == 1.0  # headway feature at its cap, as for a far leader
+
+
+def test_lane_changing_features_see_the_lanes() -> None:
+    features = FeatureMap("lc")
+    middle = make_observation(ego=Ego(15.0, 0.0, 1, 3, 100.0, 22.22))
+    right = make_observation(ego=Ego(15.0, 0.0, 0, 3, 100.0, 22.22))
+    assert features.dim == 6 + 5 * 3 + 2
+    assert list(features(middle)[-2:]) == [1.0, 1.0]
+    assert list(features(right)[-2:]) == [1.0, 0.0]
+
+
+def test_unknown_feature_set() -> None:
+    with pytest.raises(ValueError, match="known: cf, lc"):
+        FeatureMap("pixels")

@@ -1,0 +1,52 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from agent_client.cli.main import build_parser
+from agent_client.cli.train import build_config
+from agent_client.training.config import (
+    TrainConfig,
+    apply_overrides,
+    load_config_file,
+    parse_assignment,
+)
+
+
+def test_defaults_are_documented_dataclass_fields() -> None:
+    config = TrainConfig()
+    assert config.reward == "safe"
+    assert config.learner.algo == "td3"  # the recommended learner
+    assert TrainConfig.from_dict(config.to_dict()) == config
+
+
+def test_unknown_settings_are_refused() -> None:
+    with pytest.raises(ValueError, match="warp"):
+        apply_overrides(TrainConfig(), {"warp": 1})
+    with pytest.raises(ValueError, match="warp"):
+        apply_overrides(TrainConfig(), {"learner": {"warp": 1}})
+
+
+def test_assignments_parse_json_values_and_nested_keys() -> None:
+    assert parse_assignment("episodes=40") == {"episodes": 40}
+    assert parse_assignment("learner.actor_lr=3e-4") == {"learner": {"actor_lr": 3e-4}}
+    assert parse_assignment("reward=ra3") == {"reward": "ra3"}
+
+
+def test_precedence_defaults_file_flags_set(tmp_path: Path) -> None:
+    file = tmp_path / "run.toml"
+    file.write_text('episodes = 50\nreward = "ra3"\nseed = 4\n[ddpg]\nactor_lr = 0.002\n')
+    assert load_config_file(file)["ddpg"] == {"actor_lr": 0.002}
+    args = build_parser().parse_args(
+        ["train", "--config", str(file), "--episodes", "70", "--algo", "ddpg",
+         "--set", "seed=9", "--set", "learner.critic_lr=0.01"]
+    )  # fmt: skip
+    config = build_config(args)
+    assert config.episodes == 70  # flag beats file
+    assert config.reward == "ra3"  # file beats default
+    assert config.seed == 9  # --set beats file
+    assert config.learner.actor_lr == 0.002
+    assert config.learner.critic_lr == 0.01
+    assert config.learner.algo == "ddpg"  # --algo switches the trio off, keeps the rest
+    assert config.learner.gamma == TrainConfig().learner.gamma

@@ -1,0 +1,252 @@
+"""The rules every backend shares: acceleration limits, lane-change refusals and timeout, the
+end of an episode."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from protocol.messages import (
+    AccelerationLimit,
+    AppliedAction,
+    Ego,
+    EndReason,
+    Events,
+    LaneChangeRefusal,
+    Neighbour,
+    Neighbours,
+    Observation,
+)
+from sim_server.backends.options import EpisodeOptions
+from sim_server.backends.rules import (
+    LANE_CHANGE_TIMEOUT_S,
+    EndRule,
+    LaneChangeUnderWay,
+    ended,
+    lane_change_refusal,
+    limit_acceleration,
+)
+
+LOW, HIGH, LIMIT, DT = -6.0, 3.0, 20.0, 0.1
+
+# --------------------------------------------------------------------------- acceleration
+
+
+def test_an_acceleration_within_every_limit_is_applied_as_asked() -> None:
+    assert limit_acceleration(1.5, 10.0, LIMIT, LOW, HIGH, DT) == (1.5, "")
+    assert limit_acceleration(LOW, 10.0, LIMIT, LOW, HIGH, DT) == (LOW, "")  # bounds included
+
+
+@pytest.mark.parametrize(("request_", "applied"), [(50.0, HIGH), (-50.0, LOW)])
+def test_an_acceleration_beyond_the_bounds_is_clipped(request_: float, applied: float) -> None:
+    assert limit_acceleration(request_, 10.0, LIMIT, LOW, HIGH, DT) == (
+        applied,
+        AccelerationLimit.BOUNDS,
+    )
+
+
+def test_the_speed_limit_lowers_the_acceleration_to_reach_it_exactly() -> None:
+    applied, why = limit_acceleration(2.0, 19.9, LIMIT, LOW, HIGH, DT)
+    assert why is AccelerationLimit.SPEED_LIMIT
+    assert applied == pytest.approx(1.0)
+    assert 19.9 + applied * DT == pytest.approx(LIMIT)
+    # Clipped to the bounds first: the speed limit's reason is the one reported.
+    assert limit_acceleration(50.0, 19.9, LIMIT, LOW, HIGH, DT)[1] is AccelerationLimit.SPEED_LIMIT
+
+
+def test_far_above_the_speed_limit_the_ego_brakes_no_harder_than_the_bound() -> None:
+    assert limit_acceleration(0.0, 30.0, LIMIT, LOW, HIGH, DT) == (
+        LOW,
+        AccelerationLimit.SPEED_LIMIT,
+    )
+
+
+def test_braking_stops_at_standstill_instead_of_reversing() -> None:
+    applied, why = limit_acceleration(-6.0, 0.2, LIMIT, LOW, HIGH, DT)
+    assert why is AccelerationLimit.STANDSTILL
+    assert applied == pytest.approx(-2.0)
+    assert limit_acceleration(-50.0, 0.0, LIMIT, LOW, HIGH, DT) == (
+        0.0,
+        AccelerationLimit.STANDSTILL,
+    )
+
+
+def test_the_reasons_are_the_wire_strings() -> None:
+    _, why = limit_acceleration(-50.0, 10.0, LIMIT, LOW, HIGH, DT)
+    assert why == "bounds" and isinstance(why, str)
+
+
+# --------------------------------------------------------------------------- lane changes
+
+
+class Calls:
+    """The simulator queries of a refusal, answering as told and counting the calls."""
+
+    def __init__(self, lane: int = 1, lane_count: int = 3, gap_ok: bool = True) -> None:
+        self.lane, self.lane_count, self.gap = lane, lane_count, gap_ok
+        self.asked: list[str] = []
+
+    def ego_lane(self) -> tuple[int, int]:
+        self.asked.append("lane")
+        return self.lane, self.lane_count
+
+    def gap_ok(self, direction: int) -> bool:
+        self.asked.append(f"gap {direction}")
+        return self.gap
+
+
+UNDER_WAY = LaneChangeUnderWay(target=2, direction=1, started=30.0)
+
+
+def refusal(
+    direction: int,
+    calls: Calls,
+    simulator_drives: bool = False,
+    under_way: LaneChangeUnderWay | None = None,
+) -> str:
+    return lane_change_refusal(
+        direction,
+        simulator_drives=simulator_drives,
+        under_way=under_way,
+        ego_lane=calls.ego_lane,
+        gap_ok=calls.gap_ok,
+    )
+
+
+def test_keeping_the_lane_is_never_refused_and_asks_nothing() -> None:
+    calls = Calls(lane_count=1, gap_ok=False)
+    assert refusal(0, calls, simulator_drives=True, under_way=UNDER_WAY) == ""
+    assert calls.asked == []
+
+
+def test_a_lane_change_with_a_lane_and_a_gap_is_allowed() -> None:
+    calls = Calls(lane=1, lane_count=3)
+    assert refusal(-1, calls) == ""
+    assert calls.asked == ["lane", "gap -1"]
+
+
+def test_refusals_come_in_order_each_asking_only_what_it_needs() -> None:
+    # Every rule would refuse: the simulator driving comes first, and asks nothing.
+    calls = Calls(lane=2, lane_count=3, gap_ok=False)
+    verdict = refusal(1, calls, simulator_drives=True, under_way=UNDER_WAY)
+    assert verdict is LaneChangeRefusal.SIMULATOR_DRIVES and calls.asked == []
+    # Then a lane change under way.
+    assert refusal(1, calls, under_way=UNDER_WAY) is LaneChangeRefusal.IN_PROGRESS
+    assert calls.asked == []
+    # Then no lane on that side (the gap is not checked).
+    assert refusal(1, calls) is LaneChangeRefusal.NO_LANE
+    assert calls.asked == ["lane"]
+    # Then the simulator's own gap check.
+    calls = Calls(lane=1, lane_count=3, gap_ok=False)
+    assert refusal(1, calls) is LaneChangeRefusal.GAP_TOO_SMALL
+    assert calls.asked == ["lane", "gap 1"]
+
+
+@pytest.mark.parametrize(
+    ("lane", "lane_count", "direction", "verdict"),
+    [
+        (0, 1, 1, "no_lane"),
+        (0, 1, -1, "no_lane"),
+        (0, 3, -1, "no_lane"),
+        (0, 3, 1, ""),
+        (2, 3, 1, "no_lane"),
+        (2, 3, -1, ""),
+    ],
+)
+def test_no_lane_beyond_the_outer_lanes(
+    lane: int, lane_count: int, direction: int, verdict: str
+) -> None:
+    assert refusal(direction, Calls(lane, lane_count)) == verdict
+
+
+def tenths(start: float, count: int) -> list[float]:
+    """Simulation times after `start`, 0.1 s apart, as SUMO reports them (36.3 - 31.3 is
+    4.9999999999999964 in floating point)."""
+    first = round(start * 10)
+    return [(first + k) / 10 for k in range(1, count + 1)]
+
+
+def test_a_lane_change_under_way_is_given_up_after_the_timeout() -> None:
+    change = LaneChangeUnderWay(target=1, direction=-1, started=31.3)
+    expired = [change.expired(now) for now in tenths(change.started, 60)]
+    assert expired.index(True) + 1 == round(LANE_CHANGE_TIMEOUT_S / 0.1) == 50
+    assert all(expired[49:])
+
+
+# --------------------------------------------------------------------------- end of episode
+
+ABSENT = Neighbour(False, 200.0, 0.0, 0.0)
+OPTIONS = EpisodeOptions(max_episode_time=10.0, stop_speed=1.0, stop_gap=15.0, stop_patience=2.0)
+ENTRY = 30.3
+
+
+def observation(
+    time: float,
+    speed: float,
+    leader: Neighbour = ABSENT,
+    events: Events = Events(),  # noqa: B008 - immutable
+) -> Observation:
+    return Observation(
+        seq=1,
+        time=time,
+        ego=Ego(speed, 0.0, 0, 1, 100.0, 22.2),
+        neighbours=Neighbours(ABSENT, ABSENT, leader, ABSENT, ABSENT, ABSENT),
+        events=events,
+        action=AppliedAction(0.0, 0, 0.0, 0),
+    )
+
+
+def verdicts(rule: EndRule, speeds: list[float], leader: Neighbour = ABSENT) -> list[object]:
+    """The rule's verdict on 0.1 s steps at these speeds, the first 1 s after the entry."""
+    times = tenths(ENTRY + 0.9, len(speeds))
+    return [rule.check(observation(t, v, leader)) for t, v in zip(times, speeds, strict=True)]
+
+
+def test_a_stop_ends_the_episode_after_the_patience_not_before() -> None:
+    rule = EndRule(OPTIONS, ENTRY)
+    found = verdicts(rule, [0.5] * 21)
+    assert found[:20] == [None] * 20  # stopped at the first, 1.9 s later still patient
+    assert found[20] is EndReason.STOPPED  # 2.0 s after the first stopped observation
+
+
+def test_moving_again_restarts_the_patience() -> None:
+    rule = EndRule(OPTIONS, ENTRY)
+    found = verdicts(rule, [0.5] * 15 + [1.0] + [0.5] * 21)
+    assert found == [None] * 36 + [EndReason.STOPPED]
+
+
+@pytest.mark.parametrize(
+    ("leader", "stops"),
+    [
+        (Neighbour(True, 50.0, 0.0, 5.0, "far and faster"), True),
+        (Neighbour(True, 10.0, 0.0, 5.0, "close and faster"), False),
+        (Neighbour(True, 50.0, 0.0, 0.2, "far and slower: a queue"), False),
+        (Neighbour(True, 10.0, 0.0, 0.0, "close and stopped: a queue"), False),
+    ],
+)
+def test_a_stop_behind_a_near_or_slower_leader_is_not_unreasonable(
+    leader: Neighbour, stops: bool
+) -> None:
+    rule = EndRule(OPTIONS, ENTRY)
+    found = verdicts(rule, [0.5] * 30, leader)
+    assert (EndReason.STOPPED in found) is stops
+
+
+def test_the_time_limit_counts_from_the_entry_and_truncates() -> None:
+    rule = EndRule(OPTIONS, ENTRY)
+    found = [rule.check(observation(t, 15.0)) for t in tenths(ENTRY, 110)]
+    assert found.index(EndReason.TIME_LIMIT) + 1 == 100  # 10 s of 0.1 s steps
+    assert found[:99] == [None] * 99
+    last = ended(observation(ENTRY + 10.0, 15.0), EndReason.TIME_LIMIT)
+    assert last.truncated and not last.terminated and last.reason == "time_limit"
+
+
+def test_a_collision_comes_before_every_other_reason() -> None:
+    rule = EndRule(replace(OPTIONS, stop_patience=0.0, max_episode_time=0.1), ENTRY)
+    crash = Events(collision=True, collision_with="h1", end_of_road=True)
+    obs = observation(ENTRY + 5.0, 0.0, events=crash)
+    assert rule.check(obs) is EndReason.COLLISION
+    assert rule.check(replace(obs, events=Events(end_of_road=True))) is EndReason.END_OF_ROAD
+    last = ended(obs, EndReason.COLLISION)
+    assert last.terminated and not last.truncated and last.reason == "collision"
