@@ -16,8 +16,7 @@ Two paths, one verdict:
   scalars, which are the ones sent at every step (`Step`, `Observation`; also `Close`, `Bye`,
   `Error`). msgspec packs them, and reads them straight into the dataclass, checking structure
   and types. A compiled check then adds what msgspec does not check (finite numbers, int64,
-  string lengths). This takes ~5 µs for an observation instead of ~16 (README, "Bridge
-  performance").
+  string lengths). What each path costs: README, "Bridge performance".
 
 The fast path accepts a frame only if it is the frame `encode` writes for the message read from
 it. The precise path decodes that frame to the same message (the tests check both directions),
