@@ -3,12 +3,14 @@ evaluation and a conformance kit for servers.
 
 This package never imports the simulator side (`sim_server`) or SUMO: only the protocol. The
 names below are imported lazily, so that `agent-client --help` does not pay for gymnasium or
-torch.
+torch. Imported after gymnasium, the package registers ``av_bridge/Remote-v0`` with it
+(`agent_client.envs.registration`).
 """
 
 from __future__ import annotations
 
 import importlib
+import sys
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
@@ -30,6 +32,8 @@ _EXPORTS = {
     "ServerLost": "agent_client.errors",
     "ServerError": "agent_client.errors",
     "MalformedReply": "agent_client.errors",
+    "InvalidReply": "agent_client.errors",
+    "InsertionFailed": "agent_client.errors",
     "AuthenticationFailed": "agent_client.errors",
 }
 
@@ -39,6 +43,8 @@ __all__ = [
     "Channel",
     "IDMDriver",
     "IDMParams",
+    "InsertionFailed",
+    "InvalidReply",
     "MalformedReply",
     "RemoteEnv",
     "RemoteVectorEnv",
@@ -64,6 +70,8 @@ if TYPE_CHECKING:
     from agent_client.errors import (
         AuthenticationFailed,
         BridgeError,
+        InsertionFailed,
+        InvalidReply,
         MalformedReply,
         ServerError,
         ServerLost,
@@ -81,3 +89,7 @@ def __getattr__(name: str) -> Any:
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value
+
+
+if "gymnasium" in sys.modules:  # a learner's script: make gymnasium.make("av_bridge/...") work
+    importlib.import_module("agent_client.envs")

@@ -16,6 +16,13 @@ RESET_TIMEOUT_S = 120.0
 CLOSE_TIMEOUT_S = 1.0
 """Seconds to wait for the goodbye of a server that may be gone."""
 
+INSERTION_ATTEMPTS = 5
+"""Resets tried when the ego cannot enter (``insertion_failed``) before giving up, each with
+another seed (`INSERTION_RETRY_SEED_STRIDE`)."""
+INSERTION_RETRY_SEED_STRIDE = 2**27
+"""Retry k of seed s uses seed (s + k * stride) mod 2^31: far from every seed band below, so a
+retried episode is never another episode of the same run."""
+
 TRAINING_SEED = 0
 """Training episode i of a run with seed s uses seed s + i."""
 TRAINING_EVALUATION_SEED = 100_000

@@ -41,6 +41,46 @@ class MalformedReply(BridgeError):
     """The server sent something that is not a valid reply of this protocol."""
 
 
+class InvalidReply(MalformedReply):
+    """A reply that breaks one rule of docs/protocol.md: `field` names where, `value` what was
+    sent there (None when the frame itself is at fault) and `rule` what the protocol requires.
+
+    Raised by the client on every reply (`agent_client.transport.replies`); the conformance kit
+    fails a server with the same words.
+    """
+
+    def __init__(self, field: str, value: object, rule: str, source: str = "") -> None:
+        shown = f"{field} = {_show(value)}" if value is not None else field
+        super().__init__(f"{source}: {shown}: {rule}" if source else f"{shown}: {rule}")
+        self.field = field
+        self.value = value
+        self.rule = rule
+        self.source = source
+
+
+def _show(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:g}"
+    return repr(value) if isinstance(value, str) else str(value)
+
+
+class InsertionFailed(BridgeError):
+    """The ego could not enter the simulation: every reset attempt got ``insertion_failed``.
+
+    Not a `ServerError`: the retries (`agent_client.defaults.INSERTION_ATTEMPTS` resets, each
+    with another seed) are done, so catching it means giving up on these scenario settings.
+    """
+
+    def __init__(self, scenario: str, seeds: list[int], message: str) -> None:
+        super().__init__(
+            f"scenario {scenario}: the ego could not enter in {len(seeds)} attempt(s) "
+            f"(seeds {', '.join(map(str, seeds))}); the server said: {message}"
+        )
+        self.scenario = scenario
+        self.seeds = seeds
+        self.message = message
+
+
 class UsageError(BridgeError, ValueError):
     """A bad value given by the user (one line naming it and the valid ones)."""
 

@@ -128,6 +128,7 @@ def _decode(frame: bytes, allowed: dict[str, type], max_frame_bytes: int) -> Mes
         raise ProtocolError(
             ErrorCode.DECODE_ERROR, f"frame must be a msgpack map, got {type(raw).__name__}"
         )
+    _check_plain(raw)
     kind = raw.get("type")
     if not isinstance(kind, str):
         raise ProtocolError(ErrorCode.INVALID_MESSAGE, "message has no string 'type' key")
@@ -174,9 +175,51 @@ def _field_names(cls: type) -> tuple[str, ...]:
 # --------------------------------------------------------------------------- from the wire
 
 
+_PLAIN = (str, int, float, bool, type(None))
+
+
+def _check_plain(raw: dict[str, Any]) -> None:
+    """Refuse what the protocol never sends: non-string map keys, bin and ext values, anywhere.
+
+    msgpack's strict map keys still let bin keys through, and bin and ext values are read as
+    bytes and extension objects; each is a `decode_error`, whether its key is known or not.
+    Iterative, as a frame may nest up to msgpack's own limit of 1023 levels.
+    """
+    stack: list[Any] = [raw]
+    while stack:
+        value = stack.pop()
+        if isinstance(value, dict):
+            for key in value:
+                if type(key) is not str:
+                    raise ProtocolError(
+                        ErrorCode.DECODE_ERROR,
+                        f"map key of type {_wire_kind(key)}: every map key must be a string",
+                    )
+            stack.extend(value.values())
+        elif isinstance(value, list):
+            stack.extend(value)
+        elif not isinstance(value, _PLAIN):
+            raise ProtocolError(
+                ErrorCode.DECODE_ERROR,
+                f"value of type {_wire_kind(value)}: the protocol uses nil, booleans, integers, "
+                "floats, strings, arrays and maps only",
+            )
+
+
+def _wire_kind(value: Any) -> str:
+    """The msgpack family of a decoded value, for error messages."""
+    if isinstance(value, bytes):
+        return "bin"
+    if isinstance(value, msgpack.ExtType | msgpack.Timestamp):
+        return "ext"
+    return type(value).__name__
+
+
 def _invalid(path: str, expected: str, value: Any) -> ProtocolError:
     return ProtocolError(
-        ErrorCode.INVALID_MESSAGE, f"{path}: expected {expected}, got {type(value).__name__}"
+        ErrorCode.INVALID_MESSAGE,
+        f"{path}: expected {expected}, got {type(value).__name__}",
+        field=path,
     )
 
 
@@ -185,7 +228,9 @@ def _as_float(value: Any, path: str) -> float:
         raise _invalid(path, "a number", value)
     number = float(value)
     if not math.isfinite(number):
-        raise ProtocolError(ErrorCode.INVALID_NUMBER, f"{path}: {number} is not a finite number")
+        raise ProtocolError(
+            ErrorCode.INVALID_NUMBER, f"{path}: {number} is not a finite number", field=path
+        )
     return number
 
 
@@ -193,7 +238,9 @@ def _as_int(value: Any, path: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise _invalid(path, "an integer", value)
     if not -_INT64 <= value < _INT64:
-        raise ProtocolError(ErrorCode.INVALID_NUMBER, f"{path}: {value} is out of int64 range")
+        raise ProtocolError(
+            ErrorCode.INVALID_NUMBER, f"{path}: {value} is out of int64 range", field=path
+        )
     return value
 
 
@@ -207,7 +254,9 @@ def _as_str(value: Any, path: str) -> str:
     if not isinstance(value, str):
         raise _invalid(path, "a string", value)
     if len(value) > _MAX_STRING:
-        raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: string longer than {_MAX_STRING}")
+        raise ProtocolError(
+            ErrorCode.INVALID_MESSAGE, f"{path}: string longer than {_MAX_STRING}", field=path
+        )
     return value
 
 
@@ -271,10 +320,14 @@ def _tuple(item: Converter, length: int | None) -> Converter:
             raise _invalid(path, "an array", value)
         if length is not None and len(value) != length:
             raise ProtocolError(
-                ErrorCode.INVALID_MESSAGE, f"{path}: expected {length} items, got {len(value)}"
+                ErrorCode.INVALID_MESSAGE,
+                f"{path}: expected {length} items, got {len(value)}",
+                field=path,
             )
         if len(value) > _MAX_ITEMS:
-            raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: more than {_MAX_ITEMS} items")
+            raise ProtocolError(
+                ErrorCode.INVALID_MESSAGE, f"{path}: more than {_MAX_ITEMS} items", field=path
+            )
         return tuple(item(v, f"{path}[{i}]") for i, v in enumerate(value))
 
     return convert
@@ -285,7 +338,9 @@ def _mapping(item: Converter) -> Converter:
         if not isinstance(value, dict):
             raise _invalid(path, "a map", value)
         if len(value) > _MAX_ITEMS:
-            raise ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: more than {_MAX_ITEMS} keys")
+            raise ProtocolError(
+                ErrorCode.INVALID_MESSAGE, f"{path}: more than {_MAX_ITEMS} keys", field=path
+            )
         return {_as_str(k, path): item(v, f"{path}.{k}") for k, v in value.items()}
 
     return convert
@@ -422,7 +477,9 @@ def _slot_setters(cls: type) -> list[Callable[[Any, Any], None]] | None:
 
 
 def _missing(path: str, name: str) -> ProtocolError:
-    return ProtocolError(ErrorCode.INVALID_MESSAGE, f"{path}: missing field {name!r}")
+    return ProtocolError(
+        ErrorCode.INVALID_MESSAGE, f"{path}: missing field {name!r}", field=f"{path}.{name}"
+    )
 
 
 # --------------------------------------------------------------------------- the fast path

@@ -37,9 +37,10 @@ class ErrorCode(StrEnum):
 
 
 class ProtocolError(Exception):
-    """A message that cannot be accepted; `code` says why."""
+    """A message that cannot be accepted; `code` says why, `field` where ("" for the frame)."""
 
-    def __init__(self, code: ErrorCode, message: str) -> None:
+    def __init__(self, code: ErrorCode, message: str, field: str = "") -> None:
         super().__init__(message)
         self.code = code
         self.message = message
+        self.field = field

@@ -122,12 +122,14 @@ class ScenarioInfo:
     """A scenario the server offers, with its options and their default values.
 
     `step_length` is the simulator's own time step (s): a decision lasts one or more of them.
+    Required since protocol 1.2; None when a 1.0/1.1 server left it out (a client then assumes
+    a value, docs/protocol.md §2.2).
     """
 
     name: str
     description: str
     options: dict[str, OptionValue] = field(default_factory=dict)
-    step_length: float = 0.1
+    step_length: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

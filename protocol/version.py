@@ -5,6 +5,10 @@ Revision history:
          with the six neighbours of the paper's Fig. 11, events and applied actions.
     1.1  `ego.changing_lane`: the direction of the lane change under way (0 from 1.0 servers);
          `events.lane_change_aborted`: a started lane change the simulator gave up.
+    1.2  No new key; the contract made complete: `scenarios[].step_length` required; the
+         server socket is a ROUTER with handover; one error code for every malformed request
+         (non-string keys, bin and ext values are `decode_error`); the state machine's and the
+         observation's corner cases and the well-known options' types specified.
 
 The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
 
@@ -14,7 +18,7 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 1)
+PROTOCOL_VERSION: tuple[int, int] = (1, 2)
 
 
 def format_version(version: tuple[int, int]) -> str:

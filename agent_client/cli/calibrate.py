@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         welcome, step_length = env.welcome, env.step_length
     finally:
         env.close()
+    assert step_length is not None  # RemoteEnv knows it once connected
     result = _fit(args, segments, step_length, welcome)
     _write(args, scenario, seeds, segments, step_length, welcome, result)
     return 0

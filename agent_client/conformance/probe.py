@@ -2,7 +2,9 @@
 
 A probe sends typed requests, raw msgpack maps or raw bytes, and returns the reply's bytes with
 its decoded value, so a check can compare replies byte for byte. Every receive has the channel's
-deadline; a lost or late reply is `NoReply`, an undecodable one `BadReply`.
+deadline; a lost or late reply is `NoReply` (and the next request goes out on a fresh
+connection under the same routing id, as the ZeroMQ guide's Lazy Pirate does), an undecodable
+one `BadReply`.
 """
 
 from __future__ import annotations
@@ -33,12 +35,18 @@ class Probe:
     """One request in flight over the transport the address names; every receive has a
     deadline."""
 
-    def __init__(self, address: str, timeout_s: float) -> None:
+    def __init__(self, address: str, timeout_s: float, name: str = "agent-client-check") -> None:
         self.address = address
         self.timeout_s = timeout_s
-        self.channel: Channel = connect(
-            address, timeout_s, routing_id=new_routing_id("agent-client-check")
-        )
+        self.channel: Channel = connect(address, timeout_s, routing_id=new_routing_id(name))
+        self._discarded = 0
+        self.timeouts = 0
+        """Requests that got no reply in time (their replies may still come, late)."""
+
+    @property
+    def discarded(self) -> int:
+        """Replies the client's REQ sockets discarded as answering no request in flight."""
+        return self._discarded + getattr(self.channel, "discarded", 0)
 
     def send(self, frame: bytes, timeout_s: float | None = None) -> bytes:
         """Send one frame and return the one-frame reply; raises NoReply after the deadline."""
@@ -47,6 +55,8 @@ class Probe:
             self.channel.send_raw(frame)
             return self.channel.receive_frame(deadline)
         except ServerUnavailable as exc:
+            self.timeouts += 1
+            self.channel.drop()  # Lazy Pirate: a fresh connection for the next request
             raise NoReply(str(exc)) from exc
         except MalformedReply as exc:
             raise BadReply(str(exc)) from exc
@@ -78,8 +88,19 @@ class Probe:
         return self.exchange(request, timeout_s)[1]
 
     def drop(self) -> None:
-        """Forget the connection; the next request opens a fresh one with the same routing id."""
+        """Forget the connection; the next request opens a fresh one with the same routing id.
+
+        This is also how a killed client looks to the server: its connection closes, without
+        a ``close``."""
         self.channel.drop()
+
+    def handover(self) -> Channel:
+        """Go on over a second connection under the same routing id, opened while the first is
+        still up (as after a half-open network); returns the first for the caller to close."""
+        old = self.channel
+        self._discarded += getattr(old, "discarded", 0)
+        self.channel = connect(self.address, self.timeout_s, routing_id=old.routing_id)
+        return old
 
     def close(self) -> None:
         self.channel.close()

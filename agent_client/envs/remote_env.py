@@ -1,15 +1,19 @@
 """`RemoteEnv`: a Gymnasium environment whose simulator runs in another process.
 
-Observations are the flat float32 vector announced by the server's schema (the named
-`protocol.Observation` is in ``info["observation"]``); actions are a dict of a longitudinal
-acceleration (m/s^2, within the server's bounds) and a lane change (-1 right, 0 keep, +1 left).
-The reward is computed here, on the learner's side, from the observations alone.
+Observations are the flat float32 vector announced by the server's schema, with finite bounds
+(the named `protocol.Observation` is in ``info["observation"]``); actions encode a longitudinal
+acceleration (m/s^2, within the server's bounds) and a lane change (-1 right, 0 keep, +1 left) in
+the space chosen with ``action_space`` (`agent_client.envs.spaces`: a flat normalised Box by
+default, which Stable-Baselines3 and RLlib take as it is; the Dict on request). The reward is
+computed here, on the learner's side, from the observations alone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -19,6 +23,15 @@ import zmq
 from gymnasium import spaces
 
 from agent_client.defaults import CLOSE_TIMEOUT_S, DEFAULT_SCENARIO, RESET_TIMEOUT_S, STEP_TIMEOUT_S
+from agent_client.envs.scenario import first_observation, scenario_options
+from agent_client.envs.spaces import (
+    ACTION_SPACES,
+    DEFAULT_ACCELERATION_LEVELS,
+    ActionEncoding,
+    decode_named,
+    make_action_encoding,
+    observation_space,
+)
 from agent_client.errors import (
     BridgeError,
     MalformedReply,
@@ -29,7 +42,8 @@ from agent_client.errors import (
 )
 from agent_client.transport import connect
 from agent_client.transport.channel import Channel
-from protocol.messages import Close, Observation, OptionValue, Reset, Step, Welcome
+from agent_client.transport.replies import ReplyChecker, check_welcome
+from protocol.messages import Close, Error, Observation, OptionValue, Reset, Step, Welcome
 from protocol.schema import Flattener
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 from protocol.transport.security import ClientCredentials
@@ -39,8 +53,17 @@ RewardFn = Callable[[Observation | None, Observation, float], float]
 ActionDict = Mapping[str, Any]
 
 
-class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
-    """One ego vehicle in a remote simulator, behind the bridge protocol."""
+class RemoteEnv(gym.Env[np.ndarray, Any]):
+    """One ego vehicle in a remote simulator, behind the bridge protocol.
+
+    ``action_space="auto"`` (the default) is a ``Box(-1, 1, (1,))`` acceleration on a one-lane
+    road and the hybrid ``Box(-1, 1, (2,))`` (acceleration, lane choice) on a road with several;
+    ``"box"``, ``"hybrid"``, ``"discrete"``, ``"multi_discrete"`` and ``"dict"`` choose one
+    (`agent_client.envs.spaces`). For ``"auto"`` and the discrete ones the lane count comes from
+    the first observation: asked for before any reset, ``action_space`` resets once to find
+    out. `step` also takes the named form ``{"acceleration": [a], "lane_change": k}`` in m/s²
+    whatever the space.
+    """
 
     metadata: dict[str, Any] = {"render_modes": []}
 
@@ -53,12 +76,22 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         timeout_s: float = STEP_TIMEOUT_S,
         reset_timeout_s: float = RESET_TIMEOUT_S,
         credentials: ClientCredentials | None = None,
+        action_space: str = "auto",
+        acceleration_levels: int = DEFAULT_ACCELERATION_LEVELS,
         **options: OptionValue,
     ) -> None:
         """Connect and shake hands; `options` are scenario options sent with every reset.
 
         `credentials` (CURVE keys) default to $AV_BRIDGE_SERVER_KEY / $AV_BRIDGE_SECRET_KEY.
+        `action_space` is one of `agent_client.envs.spaces.ACTION_SPACES`;
+        `acceleration_levels` the number of accelerations of the discrete encodings.
         """
+        if action_space not in ACTION_SPACES:
+            raise UsageError(
+                f"action_space {action_space!r} is not one of: {', '.join(ACTION_SPACES)}"
+            )
+        if acceleration_levels < 2:
+            raise UsageError(f"acceleration_levels must be at least 2, got {acceleration_levels}")
         self.address = address
         self.scenario = scenario
         self.options = dict(options)
@@ -75,16 +108,18 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
             self.close()  # free the server for the next client, then report
             raise
         self.step_length = next(s.step_length for s in self.welcome.scenarios if s.name == scenario)
-        schema = self.welcome.action
-        self.action_space = spaces.Dict(
-            {
-                "acceleration": spaces.Box(
-                    schema.acceleration_min, schema.acceleration_max, (1,), np.float32
-                ),
-                "lane_change": spaces.Discrete(3, start=-1),
-            }
+        self._action_space_name = action_space
+        self._acceleration_levels = acceleration_levels
+        self._encoding: ActionEncoding | None = None
+        if action_space in ("box", "hybrid", "dict"):  # the others depend on the lane count
+            self._encoding = make_action_encoding(
+                action_space, self.welcome.action, True, acceleration_levels
+            )
+        box = observation_space(
+            self.welcome.observation_fields, self.welcome.sensor_range, self.welcome.action
         )
-        self.observation_space = spaces.Box(-np.inf, np.inf, (len(self.flatten.names),), np.float32)
+        self.observation_space = box
+        self._observation_low, self._observation_high = box.low, box.high
         self._seq = 0
         self._last: Observation | None = None
         self._done = True
@@ -98,9 +133,15 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         self.send_reset(seed=seed, options=options)
         return self.receive_reset()
 
-    def step(self, action: ActionDict) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         self.send_step(action)
         return self.receive_step()
+
+    @property
+    def episode_seed(self) -> int:
+        """The seed the current episode runs with: the one asked for, or the one an insertion
+        retry moved to (`agent_client.envs.scenario`)."""
+        return self._episode_seed
 
     # The two halves of reset and step, so that a vector env can keep several servers busy.
 
@@ -111,24 +152,52 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         self._connection.send(request)
 
     def receive_reset(self) -> tuple[np.ndarray, dict[str, Any]]:
-        obs = self._observation(self._connection.receive_checked(self.reset_timeout_s))
-        self._seq, self._last, self._done = 0, obs, False
+        obs = self.receive_reset_observation()
         return self._vector(obs), {"observation": obs, "seed": self._episode_seed}
 
-    def send_step(self, action: ActionDict) -> None:
-        if self._done:
-            raise gym.error.ResetNeeded("the episode has ended (or never started): call reset()")
-        acceleration, lane_change = _parse_action(action)
-        self._seq += 1
-        self._connection.send(Step(self._seq, acceleration, lane_change))
+    def send_step(self, action: Any) -> None:
+        if isinstance(action, Mapping):  # the named form, whatever the space
+            self.send_command(*decode_named(action))
+        else:
+            self.send_command(*self.action_encoding.decode(action))
 
     def receive_step(self) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        obs = self._observation(self._connection.receive_checked())
+        obs, reward = self.receive_observation()
+        return self._vector(obs), reward, obs.terminated, obs.truncated, {"observation": obs}
+
+    # The named path, for drivers and the trainer: no flat vector, no action parsing.
+
+    def receive_reset_observation(self) -> Observation:
+        """The first observation of the episode `send_reset` started, checked against the
+        protocol; an ego that could not enter is retried on other seeds, then `InsertionFailed`
+        (`agent_client.envs.scenario.first_observation`)."""
+        obs, seed = first_observation(self._connection, self._replies, self.reset_timeout_s)
+        if seed is not None:
+            self._episode_seed = seed
+        self._seq, self._last, self._done = 0, obs, False
+        return obs
+
+    def send_command(self, acceleration: float, lane_change: int) -> None:
+        """Send one decision: an acceleration (m/s^2) and a lane change (-1, 0, +1)."""
+        if self._done:
+            raise gym.error.ResetNeeded("the episode has ended (or never started): call reset()")
+        if not math.isfinite(acceleration):
+            raise ValueError(f"acceleration must be finite, got {acceleration}")
+        if lane_change not in (-1, 0, 1):
+            raise ValueError(f"lane_change must be -1, 0 or 1, got {lane_change}")
+        self._seq += 1
+        self._connection.send(Step(self._seq, float(acceleration), int(lane_change)))
+
+    def receive_observation(self) -> tuple[Observation, float]:
+        """The observation after the decision `send_command` sent (checked against the protocol:
+        `InvalidReply`), and its reward."""
+        reply = self._connection.receive()
+        obs = self._observation(self._replies.check(self._connection.sent, reply))
         prev, self._last = self._last, obs
         elapsed = obs.time - prev.time if prev is not None else 0.0
         reward = float(self.reward_fn(prev, obs, elapsed))
         self._done = obs.terminated or obs.truncated
-        return self._vector(obs), reward, obs.terminated, obs.truncated, {"observation": obs}
+        return obs, reward
 
     def reconnect(self, timeout_s: float) -> None:
         """After `ServerUnavailable`: connect afresh and shake hands, waiting up to `timeout_s`.
@@ -156,9 +225,11 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
                     raise ServerTimeout(
                         f"no server at {self.address} came back within {timeout_s:g} s"
                     ) from None
+        source = f"invalid reply from {self.address}"
+        welcome, _ = check_welcome(welcome, source, self.scenario)
         if Flattener(welcome.observation_fields).names != self.flatten.names:
             raise MalformedReply(f"{self.address} came back with another observation schema")
-        self.welcome = welcome
+        self.welcome, self._replies = welcome, ReplyChecker(welcome, source)
 
     def close(self) -> None:
         """Say goodbye (best effort, short timeout) and release the socket."""
@@ -173,34 +244,58 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
     # ----------------------------------------------------------------------- helpers
 
     def _check_scenario(self) -> dict[str, OptionValue]:
-        """The scenario's full options; refuses unknown scenarios and options early."""
+        """The scenario's full options. Refuses early: an unknown scenario or option
+        (`UsageError`), a welcome that breaks the protocol (`InvalidReply`); a 1.0/1.1 server
+        without a step length gets one assumed, with a warning (`replies.check_welcome`)."""
         offered = {s.name: s for s in self.welcome.scenarios}
         if self.scenario not in offered:
             raise UsageError(
                 f"server at {self.address} offers no scenario {self.scenario!r}; "
                 f"offered: {', '.join(offered)}"
             )
-        known = offered[self.scenario].options
-        unknown = set(self.options) - set(known)
-        if unknown:
-            raise UsageError(
-                f"scenario {self.scenario} has no option {sorted(unknown)[0]!r}; "
-                f"known: {', '.join(known)}"
-            )
-        return {**known, **self.options}
+        source = f"invalid reply from {self.address}"
+        self.welcome, notes = check_welcome(self.welcome, source, self.scenario)
+        for note in notes:
+            warnings.warn(note, stacklevel=3)
+        self._replies = ReplyChecker(self.welcome, source)
+        info = next(s for s in self.welcome.scenarios if s.name == self.scenario)
+        self.options = scenario_options(info, self.options, self.address)
+        return {**info.options, **self.options}
 
     def _check_schema(self) -> Flattener:
-        """The server's schemas must be usable: known fields, sensible action bounds."""
-        schema = self.welcome.action
-        if not schema.acceleration_min < schema.acceleration_max:
-            raise MalformedReply(
-                f"welcome from {self.address}: acceleration bounds "
-                f"[{schema.acceleration_min}, {schema.acceleration_max}] are empty"
+        """The flat vector of the server's schema (`_check_scenario` checked the welcome)."""
+        return Flattener(self.welcome.observation_fields)
+
+    # ----------------------------------------------------------------------- action spaces
+
+    @property  # type: ignore[override]
+    def action_space(self) -> spaces.Space[Any]:
+        """The space of the chosen action encoding (`agent_client.envs.spaces`)."""
+        return self.action_encoding.space
+
+    @action_space.setter
+    def action_space(self, space: spaces.Space[Any]) -> None:
+        raise AttributeError("choose the action space with RemoteEnv(action_space=NAME)")
+
+    @property
+    def action_encoding(self) -> ActionEncoding:
+        """The encoding that `step` decodes; for ``"auto"``, fixed by the first lane count seen."""
+        if self._encoding is None:
+            several = self._lane_count() > 1
+            self._encoding = make_action_encoding(
+                self._action_space_name, self.welcome.action, several, self._acceleration_levels
             )
-        try:
-            return Flattener(self.welcome.observation_fields)
-        except ValueError as exc:
-            raise MalformedReply(f"welcome from {self.address}: {exc}") from exc
+        return self._encoding
+
+    def _lane_count(self) -> int:
+        """Lanes of the ego's road: from the last observation, else from one reset (seed 0) whose
+        episode is then dropped (the next `reset` starts the caller's own)."""
+        if self._last is not None:
+            return self._last.ego.lane_count
+        self._connection.send(Reset(self.scenario, 0, dict(self.options)))
+        lane_count = self.receive_reset_observation().ego.lane_count
+        self._seq, self._last, self._done = 0, None, True
+        return lane_count
 
     @property
     def last_observation(self) -> Observation | None:
@@ -208,27 +303,16 @@ class RemoteEnv(gym.Env[np.ndarray, ActionDict]):
         return self._last
 
     def _vector(self, obs: Observation) -> np.ndarray:
-        return np.asarray(self.flatten(obs), dtype=np.float32)
+        vector = np.asarray(self.flatten(obs), dtype=np.float32)
+        return np.clip(vector, self._observation_low, self._observation_high)
 
     @staticmethod
     def _observation(reply: object) -> Observation:
+        if isinstance(reply, Error):
+            raise ServerError(reply.code, reply.message)
         if not isinstance(reply, Observation):
             raise MalformedReply(f"expected an observation, got {type(reply).__name__}")
         return reply
-
-
-def _parse_action(action: ActionDict | float) -> tuple[float, int]:
-    """Accept ``{"acceleration": [a], "lane_change": k}`` (or a bare acceleration)."""
-    if isinstance(action, Mapping):
-        acceleration = float(np.asarray(action["acceleration"], dtype=np.float64).reshape(-1)[0])
-        lane_change = int(action.get("lane_change", 0))
-    else:
-        acceleration, lane_change = float(np.asarray(action).reshape(-1)[0]), 0
-    if not np.isfinite(acceleration):
-        raise ValueError(f"acceleration must be finite, got {acceleration}")
-    if lane_change not in (-1, 0, 1):
-        raise ValueError(f"lane_change must be -1, 0 or 1, got {lane_change}")
-    return acceleration, lane_change
 
 
 def _resolve_reward(reward: str | RewardFn) -> RewardFn:

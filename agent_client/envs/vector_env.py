@@ -6,19 +6,25 @@ server and only then waits for the replies, so the servers simulate in parallel 
 learner waits once. Episodes reset automatically in the same step (Gymnasium's ``SAME_STEP``
 autoreset): the observation returned for a finished environment is the first of its next
 episode, and the last one of the finished episode is in ``info["final_obs"]``.
+
+Actions follow the `RemoteEnv` action space chosen with ``action_space`` (the same for every
+server): a batch of that space, or the named form ``{"acceleration": (N, 1), "lane_change": (N,)}``
+in m/s².
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from agent_client.defaults import DEFAULT_SCENARIO, RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.envs.remote_env import RemoteEnv, RewardFn
+from agent_client.envs.spaces import DEFAULT_ACCELERATION_LEVELS, decode_named_batch
 from protocol.messages import OptionValue
 from protocol.transport.security import ClientCredentials
 
@@ -37,8 +43,12 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
         timeout_s: float = STEP_TIMEOUT_S,
         reset_timeout_s: float = RESET_TIMEOUT_S,
         credentials: ClientCredentials | None = None,
+        action_space: str = "auto",
+        acceleration_levels: int = DEFAULT_ACCELERATION_LEVELS,
         **options: OptionValue,
     ) -> None:
+        """One `RemoteEnv` per address, all with the same scenario, reward, action space (see
+        `RemoteEnv`) and options."""
         if not addresses:
             raise ValueError("RemoteVectorEnv needs at least one server address")
         if len(set(addresses)) != len(addresses):
@@ -54,6 +64,8 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
                         timeout_s=timeout_s,
                         reset_timeout_s=reset_timeout_s,
                         credentials=credentials,
+                        action_space=action_space,
+                        acceleration_levels=acceleration_levels,
                         **options,
                     )
                 )
@@ -66,9 +78,26 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
             raise ValueError("the servers announce different observation schemas")
         self.num_envs = len(self.envs)
         self.single_observation_space = first.observation_space
-        self.single_action_space = first.action_space
         self.observation_space = batch_space(first.observation_space, self.num_envs)
-        self.action_space = batch_space(first.action_space, self.num_envs)
+
+    # The action space is the first environment's, fixed when it is first asked for (with
+    # "auto", by the lane count of the first observation: `RemoteEnv.action_encoding`).
+
+    @property  # type: ignore[override]
+    def single_action_space(self) -> spaces.Space[Any]:
+        return self.envs[0].action_space
+
+    @single_action_space.setter
+    def single_action_space(self, space: spaces.Space[Any]) -> None:
+        raise AttributeError("choose the action space with RemoteVectorEnv(action_space=NAME)")
+
+    @property  # type: ignore[override]
+    def action_space(self) -> spaces.Space[Any]:
+        return batch_space(self.single_action_space, self.num_envs)
+
+    @action_space.setter
+    def action_space(self, space: spaces.Space[Any]) -> None:
+        raise AttributeError("choose the action space with RemoteVectorEnv(action_space=NAME)")
 
     @property
     def addresses(self) -> list[str]:
@@ -89,13 +118,13 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
         return observations, {"observation": [info["observation"] for _, info in results]}
 
     def step(
-        self, actions: dict[str, Any]
+        self, actions: Any
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step all environments at once; finished ones start their next episode."""
-        accelerations = np.asarray(actions["acceleration"], dtype=np.float64).reshape(
-            self.num_envs, -1
-        )[:, 0]
-        lanes = np.asarray(actions.get("lane_change", np.zeros(self.num_envs)), dtype=np.int64)
+        if isinstance(actions, Mapping):
+            accelerations, lanes = decode_named_batch(actions, self.num_envs)
+        else:
+            accelerations, lanes = self.envs[0].action_encoding.decode_batch(actions, self.num_envs)
         results = self.step_each(accelerations, lanes)
         observations = np.stack([r[0] for r in results])
         rewards = np.array([r[1] for r in results], dtype=np.float64)
@@ -118,7 +147,7 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
     ) -> list[tuple[np.ndarray, float, bool, bool, dict[str, Any]]]:
         """One step of every environment, no autoreset: `RemoteEnv.step` results in order."""
         for env, acceleration, lane in zip(self.envs, accelerations, lane_changes, strict=True):
-            env.send_step({"acceleration": [float(acceleration)], "lane_change": int(lane)})
+            env.send_command(float(acceleration), int(lane))
         return [env.receive_step() for env in self.envs]
 
     def reset_each(

@@ -28,6 +28,7 @@ import numpy as np
 from agent_client.drivers.episode import Idle, run_episode
 from agent_client.drivers.idm import IDMParams
 from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import UsageError
 from protocol.messages import Observation, OptionValue
 
 PARAM_NAMES = ("a", "b", "T", "s0", "v0", "delta")
@@ -152,15 +153,21 @@ def record_segments(
 
     `on_episode(seed, segments, steps)` is called after each episode (progress).
     """
-    options: dict[str, OptionValue] = {
-        "ego_driver": "sumo",
-        "decision_interval": env.step_length,
-        "report_ceiling": False,
-    }
+    step_length = env.step_length
+    assert step_length is not None  # RemoteEnv knows it once connected
+    if "ego_driver" not in env.scenario_options:
+        raise UsageError(
+            f"scenario {env.scenario} has no ego_driver option: calibrate-idm records the "
+            "simulator's own drivers (docs/protocol.md §2.3)"
+        )
+    options: dict[str, OptionValue] = {"ego_driver": "sumo"}
+    for name, value in (("decision_interval", step_length), ("report_ceiling", False)):
+        if name in env.scenario_options:  # a scenario without it already decides every step
+            options[name] = value
     segments: list[Segment] = []
     for seed in seeds:
         observations = run_episode(env, Idle(), seed, options=options).observations
-        found = segments_from_observations(observations, seed, env.step_length, min_duration)
+        found = segments_from_observations(observations, seed, step_length, min_duration)
         segments.extend(found)
         if on_episode is not None:
             on_episode(seed, found, len(observations) - 1)

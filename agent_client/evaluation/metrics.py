@@ -13,6 +13,7 @@ figures of several episodes that training, ``agent-client drive`` and the evalua
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
@@ -28,12 +29,13 @@ def jerk_series(
 ) -> tuple[np.ndarray, int]:
     """Jerk (m/s^3) at each change of acceleration, and the number of simulation steps covered.
 
-    Without `step_length` the change is spread over the time between samples.
+    Without `step_length` (or with one that is not a positive finite number, which a checked
+    welcome never gives) the change is spread over the time between samples.
     """
     if len(accelerations) < 2:
         return np.zeros(0), 0
     dt = np.diff(times)
-    if step_length is None:
+    if step_length is None or not 0 < step_length < math.inf:
         return np.diff(accelerations) / np.where(dt > 0, dt, np.nan), len(dt)
     steps = int(np.maximum(np.rint(dt / step_length), 1).sum())
     return np.diff(accelerations) / step_length, steps

@@ -9,7 +9,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import Self
 
-from agent_client.errors import MalformedReply, ServerError
+from agent_client.errors import InvalidReply, ServerError
 from protocol.codec import decode_reply, encode
 from protocol.errors import ProtocolError
 from protocol.messages import Error, Hello, Reply, Request, Welcome
@@ -27,6 +27,9 @@ class Channel(ABC):
     address: str
     timeout_s: float
     routing_id: bytes
+    sent: Request | None = None
+    """The request in flight, or the last one answered (None after `send_raw`): what a reply
+    is checked against (`agent_client.transport.replies`)."""
 
     @abstractmethod
     def send_raw(self, frame: bytes) -> None:
@@ -55,11 +58,13 @@ class Channel(ABC):
 
     def exchange_raw(self, frame: bytes, timeout_s: float | None = None) -> Reply:
         """Send an already encoded frame and return the decoded reply."""
+        self.sent = None
         self.send_raw(frame)
         return self.receive(timeout_s)
 
     def send(self, message: Request) -> None:
         """First half of `request`: send, so that several servers can work at once."""
+        self.sent = message
         self.send_raw(encode(message))
 
     def receive(self, timeout_s: float | None = None) -> Reply:
@@ -69,7 +74,10 @@ class Channel(ABC):
             return decode_reply(frame)  # type: ignore[return-value]
         except ProtocolError as exc:
             self.drop()
-            raise MalformedReply(f"invalid reply from {self.address}: {exc}") from exc
+            rule = exc.message.removeprefix(f"{exc.field}: ") if exc.field else exc.message
+            raise InvalidReply(
+                exc.field or "frame", None, rule, f"invalid reply from {self.address}"
+            ) from exc
 
     def receive_checked(self, timeout_s: float | None = None) -> Reply:
         """`receive`, raising `ServerError` for an `Error` reply (like `request`)."""
@@ -82,7 +90,12 @@ class Channel(ABC):
         """Handshake: announce our protocol version and receive the server's schemas."""
         reply = self.request(Hello(PROTOCOL_VERSION, client), timeout_s)
         if not isinstance(reply, Welcome):
-            raise MalformedReply(f"expected welcome, got {reply.TYPE}")
+            raise InvalidReply(
+                "reply.type",
+                reply.TYPE,
+                "a hello is answered by welcome or error (§2.2)",
+                f"invalid reply from {self.address}",
+            )
         return reply
 
     def __enter__(self) -> Self:

@@ -5,7 +5,9 @@ a fresh connection after a lost reply (Lazy Pirate) under the same routing id, s
 step is answered from the server's cache. As with ZeroMQ, a server that is not up yet is waited
 for until the request's deadline (connection attempts every `CONNECT_RETRY_S`). A closed
 connection raises `ServerLost` at once; a frozen server is only seen through the deadline (there
-are no heartbeats on this transport).
+are no heartbeats on this transport). The stream has no request ids, so bytes that arrive when no
+request is in flight (a server that answered twice, or a reply nobody asked for) are refused as
+`MalformedReply` before the next request goes out, never read as its answer.
 """
 
 from __future__ import annotations
@@ -60,10 +62,31 @@ class DirectChannel(Channel):
 
     def send_raw(self, frame_bytes: bytes) -> None:
         self._pending = []
-        if self._sock is None and not self._try_connect():
+        self._refuse_unasked()
+        if self._sock is None and not self._try_connect(self.timeout_s):
             self._unsent = frame_bytes  # sent once a connection comes up (receive waits for it)
             return
         self._send(frame_bytes)
+
+    def _refuse_unasked(self) -> None:
+        """Bytes waiting on an idle connection answer no request: drop it and say so.
+
+        A connection the server closed meanwhile is left as it is: the request's send or
+        receive then reports it (`ServerLost`, at once)."""
+        poller = self._poller
+        if poller is None or not poller.poll(0):
+            return
+        assert self._sock is not None
+        try:
+            data = self._sock.recv(_RECEIVE_BYTES, socket.MSG_PEEK)
+        except OSError:
+            return
+        if data:
+            self.drop()
+            raise MalformedReply(
+                f"{self.address} sent {len(data)} bytes while no request was in flight: one "
+                "request gets exactly one reply (docs/protocol.md §1.2; did it answer twice?)"
+            )
 
     def _send(self, frame_bytes: bytes) -> None:
         assert self._sock is not None
@@ -86,7 +109,7 @@ class DirectChannel(Channel):
                     "(is sim-server running?)"
                 )
             time.sleep(min(CONNECT_RETRY_S, max(0.0, deadline - time.monotonic())))
-            if self._try_connect():
+            if self._try_connect(deadline - time.monotonic()):
                 unsent, self._unsent = self._unsent, None
                 assert unsent is not None
                 self._send(unsent)
@@ -127,10 +150,13 @@ class DirectChannel(Channel):
             raise MalformedReply(f"{self.address} sent {len(self._pending)} replies to one request")
         return self._pending.pop()
 
-    def _try_connect(self) -> bool:
-        """Open a connection and send the preamble; False if nobody listens (yet)."""
+    def _try_connect(self, timeout_s: float) -> bool:
+        """Open a connection and send the preamble within `timeout_s`; False if nobody listens
+        (yet)."""
         try:
-            sock = socket.create_connection((self._host, self._port), timeout=self.timeout_s)
+            sock = socket.create_connection(
+                (self._host, self._port), timeout=max(0.01, min(timeout_s, self.timeout_s))
+            )
         except OSError:
             return False
         try:

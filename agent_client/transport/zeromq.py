@@ -7,6 +7,10 @@ reply to the first attempt is dropped by ZeroMQ). A broken or untrustworthy conn
 fresh socket; every socket of one `ZmqChannel` carries the same routing id, so the server still
 knows the client after such a reconnect.
 
+A message that does not carry the request's id (a late reply to an abandoned attempt, a second
+reply, or a server that drops the REQ envelope's request-id frame) is discarded by the REQ
+socket: the receive never blocks on it, and a timeout says how many were discarded.
+
 While it waits, the connection also watches its socket's events: ZeroMQ's heartbeats close a
 connection whose peer stopped answering, so a dead or frozen server raises `ServerLost` within
 seconds even when a step may legitimately take much longer (`ServerTimeout`); a refused CURVE
@@ -63,6 +67,9 @@ class ZmqChannel(Channel):
         self._session_up = False
         """A handshake succeeded on the current connection (requests reach the server)."""
         self._failed_handshakes = 0
+        self.discarded = 0
+        """Messages the REQ socket discarded as answering no request in flight (they lack the
+        request's id): late or repeated replies, or a server that drops the request-id frame."""
 
     def send_raw(self, frame: bytes) -> None:
         socket = self._ensure_socket()
@@ -78,6 +85,7 @@ class ZmqChannel(Channel):
         monitor = self._monitor
         assert monitor is not None
         watched: list[tuple[zmq.Socket[bytes], int]] = [(socket, zmq.POLLIN), (monitor, zmq.POLLIN)]
+        discarded = 0
         while True:
             remaining_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
             ready = {s for s, _ in zmq.zmq_poll(watched, remaining_ms)}
@@ -85,17 +93,16 @@ class ZmqChannel(Channel):
                 try:  # never a blocking recv: the REQ socket discards uncorrelated replies
                     frames = socket.recv_multipart(zmq.NOBLOCK)
                     break
-                except zmq.Again:
-                    continue  # readable, but nothing it keeps (e.g. the request id was dropped)
+                except zmq.Again:  # readable, but nothing it keeps: it lacked the request id
+                    discarded += 1
+                    self.discarded += 1
+                    continue
             if monitor in ready:
                 self._check_events(waiting=True)
                 continue
             if time.monotonic() < deadline:
                 continue
-            raise ServerTimeout(
-                f"no reply from {self.address} within {wait_s:.1f} s "
-                "(is sim-server running and reachable?)"
-            )
+            raise ServerTimeout(_no_reply(self.address, wait_s, discarded))
         if len(frames) != 1:
             self._drop_socket()
             raise MalformedReply(f"reply from {self.address} has {len(frames)} frames, expected 1")
@@ -167,3 +174,15 @@ class ZmqChannel(Channel):
         """Close the socket and the context; never blocks."""
         self._drop_socket()
         self._context.term()
+
+
+def _no_reply(address: str, wait_s: float, discarded: int) -> str:
+    """Why a receive timed out, naming the messages the REQ socket discarded meanwhile."""
+    text = f"no reply from {address} within {wait_s:.1f} s"
+    if not discarded:
+        return text + " (is sim-server running and reachable?)"
+    return (
+        f"{text}: {discarded} message(s) arrived without this request's id and were discarded "
+        "(does the server echo the whole envelope, request-id frame included? "
+        "docs/protocol.md §7.1)"
+    )

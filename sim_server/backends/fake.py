@@ -73,6 +73,7 @@ class _State:
     lead_speed: float
     lead_arrival: float | None
     options: EpisodeOptions
+    substeps: int
     length: float
     end: EndRule
     rng: random.Random
@@ -97,7 +98,7 @@ class FakeBackend(Backend):
         return "1"
 
     def scenarios(self) -> tuple[ScenarioInfo, ...]:
-        return (ScenarioInfo("cf", "kinematic single-lane car following", dict(FAKE_OPTIONS)),)
+        return (ScenarioInfo("cf", "kinematic single-lane car following", dict(FAKE_OPTIONS), DT),)
 
     def __init__(self) -> None:
         self._state: _State | None = None
@@ -116,6 +117,7 @@ class FakeBackend(Backend):
             lead_speed=speed + rng.uniform(-2.0, 2.0),
             lead_arrival=None,
             options=episode,
+            substeps=episode.steps_per_decision(DT),
             length=length,
             end=EndRule(episode, entry_time=episode.warmup),
             rng=rng,
@@ -156,7 +158,7 @@ class FakeBackend(Backend):
         """Move both vehicles through one decision; what limited the ego's acceleration."""
         low, high = self.action_schema.acceleration_min, self.action_schema.acceleration_max
         limited_by = ""
-        for _ in range(max(1, round(state.options.decision_interval / DT))):
+        for _ in range(state.substeps):
             acc, why = limit_acceleration(request, state.ego_speed, SPEED_LIMIT, low, high, DT)
             limited_by = limited_by or why
             state.ego_pos += state.ego_speed * DT + 0.5 * acc * DT * DT

@@ -106,7 +106,12 @@ class Server(StopFlag):
                     self.session.owner_disconnected()  # its connection is already gone
                 else:
                     self._owner_fd = fd
-        socket.send_multipart([*envelope, reply])
+        self._send(envelope, reply)
+
+    def _send(self, envelope: list[bytes], reply: bytes) -> None:
+        """The reply behind the request's whole envelope: the routing id and every frame up to
+        the empty delimiter (a correlated REQ client's request id among them)."""
+        self._socket.send_multipart([*envelope, reply])
 
     def close(self) -> None:
         if self._socket.closed:

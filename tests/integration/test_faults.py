@@ -202,7 +202,7 @@ def test_training_survives_a_server_restart_and_keeps_its_progress(tmp_path: Pat
     command = [
         sys.executable, "-m", "agent_client.cli.main", "train", "--server", address,
         "--out", str(out), "--episodes", "6", "--quiet", "--retry-for", "60",
-        "--set", "eval_every=0", "--set", "learner.learning_starts=50", "--set", "checkpoint_every=1",
+        "--set", "eval_every=0", "--set", "learner.learning_starts=50", "--set", "checkpoint_every=1", "--set", "learner.compile=false",
         "--option", "length=300.0",
     ]  # fmt: skip
     with sim_server("--backend", "fake", bind=address) as first:

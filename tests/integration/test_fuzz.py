@@ -53,7 +53,7 @@ from protocol.messages import (
     Step,
     Welcome,
 )
-from protocol.schema import OBSERVATION_FIELDS, Flattener
+from protocol.schema import OBSERVATION_FIELDS
 from protocol.transport.zeromq import SOCKET_MAX_BYTES
 from protocol.version import PROTOCOL_VERSION
 from tests.conftest import RunningServer, sim_server
@@ -340,7 +340,9 @@ def valid_request(draw: st.DrawFn, model: SessionModel) -> dict[str, Any]:
         options: dict[str, Any] = {name: draw(SAFE_OPTIONS[name]) for name in chosen}
         if draw(st.integers(0, 9)) == 0:
             options[draw(st.sampled_from([*offered, "no_such_option"]))] = draw(OPTION_NOISE)
-        seed = draw(st.one_of(st.none(), st.integers(0, 2**31 - 1), st.sampled_from(EXTREME_INTS)))
+        # No `None` seed: the server draws a random one for it, which makes the episode, and so
+        # Hypothesis's replay of a failing example, nondeterministic. tests/sim_server covers it.
+        seed = draw(st.one_of(st.integers(0, 2**31 - 1), st.sampled_from(EXTREME_INTS)))
         return {"type": "reset", "scenario": scenario, "seed": seed, "options": options}
     if kind == "step":
         nxt = model.next_seq()
@@ -829,7 +831,7 @@ def test_fuzz_the_client(target: str, evil: EvilServer) -> None:
     @given(reply=evil_reply(template))
     def property_(reply: list[bytes] | None) -> None:
         if target == "env" and reply is not None and is_schema_fault(reply):
-            return  # a known bug: test_remote_env_refuses_a_bad_schema_with_malformed_reply
+            return  # a fair UsageError: the user's scenario "cf" is not offered
         if reply is not None and len(reply) > 1:
             return  # a known bug: test_a_multipart_reply_is_malformed
         outcome = call_client(target, evil, reply)
@@ -842,22 +844,13 @@ def test_fuzz_the_client(target: str, evil: EvilServer) -> None:
 
 
 def is_schema_fault(reply: list[bytes]) -> bool:
-    """A well-formed welcome RemoteEnv refuses with ValueError: an unknown field or bounds
-    min > max (bugs, see below), or no scenario "cf" (a fair refusal of the user's choice)."""
+    """A well-formed welcome without the scenario "cf": RemoteEnv refuses the user's choice
+    with a `UsageError` (a welcome that breaks a rule is an `InvalidReply`, a MalformedReply)."""
     try:
         welcome = decode_reply(reply[0])
     except ProtocolError:
         return False
-    if not isinstance(welcome, Welcome):
-        return False
-    try:
-        Flattener(welcome.observation_fields)
-    except ValueError:
-        return True
-    bounds = welcome.action
-    return bounds.acceleration_min > bounds.acceleration_max or not any(
-        s.name == "cf" for s in welcome.scenarios
-    )
+    return isinstance(welcome, Welcome) and not any(s.name == "cf" for s in welcome.scenarios)
 
 
 def test_a_pickle_reply_is_never_executed(evil: EvilServer) -> None:

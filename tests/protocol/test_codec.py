@@ -122,6 +122,16 @@ def _code(frame: bytes, max_bytes: int = 65536) -> ErrorCode:
         (msgpack.packb({"type": "reset", "scenario": "cf", "options": {"a": math.nan}}), ErrorCode.INVALID_NUMBER),
         (msgpack.packb({"type": "hello", "protocol": [1]}), ErrorCode.INVALID_MESSAGE),
         (msgpack.packb({"type": "hello", "protocol": [1, 0]}) + b"\x00", ErrorCode.DECODE_ERROR),
+        # protocol 1.2: what the protocol never sends is a decode_error, under any key
+        (msgpack.packb({"type": "reset", "scenario": b"cf"}, use_bin_type=True), ErrorCode.DECODE_ERROR),
+        (msgpack.packb({"type": "hello", "protocol": [1, 0], "x": b"?"}, use_bin_type=True), ErrorCode.DECODE_ERROR),
+        (msgpack.packb({"type": "hello", "protocol": [1, 0], "x": msgpack.ExtType(1, b"?")}), ErrorCode.DECODE_ERROR),
+        (msgpack.packb({"type": "hello", "protocol": [1, 0], b"x": 1}, use_bin_type=True), ErrorCode.DECODE_ERROR),
+        (msgpack.packb({"type": "reset", "scenario": "cf", "options": {b"flow": 1}}, use_bin_type=True), ErrorCode.DECODE_ERROR),
+        (msgpack.packb({"type": "hello", "protocol": [1, 0], 7: 1}), ErrorCode.DECODE_ERROR),
+        (msgpack.packb({"type": 7}), ErrorCode.INVALID_MESSAGE),
+        (msgpack.packb({"type": "hello", "protocol": [1, 0], "client": "x" * 4097}), ErrorCode.INVALID_MESSAGE),
+        (msgpack.packb({"type": "step", "seq": 2**63, "acceleration": 0.0}), ErrorCode.INVALID_NUMBER),
     ],
 )  # fmt: skip
 def test_bad_frames_get_distinct_codes(frame: bytes, code: ErrorCode) -> None:
@@ -136,6 +146,25 @@ def test_frame_over_the_limit() -> None:
 def test_deeply_nested_msgpack_is_a_decode_error_not_a_crash() -> None:
     frame = b"\x91" * 100_000 + b"\x00"  # 100k nested one-element arrays
     assert _code(frame, max_bytes=1 << 20) is ErrorCode.DECODE_ERROR
+
+
+def test_nesting_is_accepted_up_to_msgpacks_limit_of_1023_levels() -> None:
+    head = msgpack.packb({"type": "hello", "protocol": [1, 0]})
+    for depth, ok in ((32, True), (1023, True), (1024, False)):
+        frame = b"\x83" + head[1:] + msgpack.packb("x") + b"\x91" * depth + b"\x00"
+        if ok:
+            assert decode_request(frame, 1 << 20).TYPE == "hello"
+        else:
+            assert _code(frame, max_bytes=1 << 20) is ErrorCode.DECODE_ERROR
+
+
+def test_an_error_names_the_field_it_is_about() -> None:
+    with pytest.raises(ProtocolError) as caught:
+        decode_request(msgpack.packb({"type": "step", "seq": 1, "acceleration": "fast"}))
+    assert caught.value.field == "step.acceleration"
+    with pytest.raises(ProtocolError) as caught:
+        decode_request(b"\xc1")
+    assert caught.value.field == ""
 
 
 def test_error_message_names_the_field() -> None:

@@ -6,6 +6,7 @@ import msgpack
 import pytest
 
 from protocol.codec import decode_reply, encode
+from protocol.errors import ErrorCode
 from protocol.messages import (
     Bye,
     Close,
@@ -13,6 +14,7 @@ from protocol.messages import (
     Hello,
     Message,
     Observation,
+    OptionValue,
     Reset,
     Step,
     Welcome,
@@ -85,6 +87,16 @@ def test_an_episode_runs_with_sequence_numbers(session: Session) -> None:
         obs = ask(session, Step(seq, 0.5))
         assert isinstance(obs, Observation)
         assert obs.seq == seq
+
+
+def test_a_reset_without_seed_is_served_with_a_seed_of_the_servers_choosing(
+    session: Session,
+) -> None:
+    ask(session, Hello(PROTOCOL_VERSION))
+    obs = ask(session, Reset("cf", None))
+    assert isinstance(obs, Observation)
+    assert obs.seq == 0
+    assert isinstance(ask(session, Step(1, 0.0)), Observation)
 
 
 def test_a_repeated_step_is_answered_from_cache_without_advancing(session: Session) -> None:
@@ -186,3 +198,41 @@ def test_backend_failures_become_error_replies() -> None:
     assert isinstance(ask(session, Reset("cf", 2)), Observation)
     assert error_code(ask(session, Step(1, -5.5))) == "simulator_error"
     assert isinstance(ask(session, Reset("cf", 3)), Observation)
+
+
+@pytest.mark.parametrize("version", [(1, 0), (1, 1), (1, 99)])
+def test_clients_of_every_minor_version_are_served(
+    session: Session, version: tuple[int, int]
+) -> None:
+    welcome = ask(session, Hello(version))
+    assert isinstance(welcome, Welcome) and welcome.protocol == PROTOCOL_VERSION
+    assert isinstance(ask(session, Reset("cf", 1)), Observation)
+    assert isinstance(ask(session, Step(1, 0.0)), Observation)
+
+
+def test_the_corners_of_the_state_machine(session: Session) -> None:
+    """docs/protocol.md §7.4: each corner gets one answer."""
+    started(session)
+    for seq in (0, -1, 2):
+        assert error_code(ask(session, Step(seq, 0.0))) == "sequence_error"
+    assert isinstance(ask(session, Step(1, 0.0)), Observation)
+    assert error_code(ask(session, Reset("nowhere", 1))) == "unknown_scenario"
+    assert error_code(ask(session, Reset("cf", 1, {"warmup": None}))) == "invalid_option"
+    assert isinstance(ask(session, Step(2, 0.0)), Observation)  # refused resets kept the episode
+    assert error_code(ask(session, Close(), peer=b"other")) == "busy"  # not the owner's close
+    assert isinstance(ask(session, Step(3, 0.0)), Observation)
+    assert isinstance(ask(session, Hello(PROTOCOL_VERSION)), Welcome)
+    assert error_code(ask(session, Step(4, 0.0))) == "out_of_order"  # hello ended the episode
+
+
+def test_a_failed_reset_ends_the_running_episode() -> None:
+    class NoEntry(FakeBackend):
+        def reset(self, scenario: str, seed: int, options: dict[str, OptionValue]) -> Observation:
+            if seed == 9:
+                raise BackendError(ErrorCode.INSERTION_FAILED, "the ego could not enter")
+            return super().reset(scenario, seed, options)
+
+    session = Session(NoEntry())
+    started(session)
+    assert error_code(ask(session, Reset("cf", 9))) == "insertion_failed"
+    assert error_code(ask(session, Step(1, 0.0))) == "out_of_order"

@@ -24,6 +24,9 @@ from xml.etree import ElementTree
 from protocol.messages import OptionValue, ScenarioInfo
 from sim_server.backends.options import COMMON_OPTIONS, TRAFFIC_OPTIONS, TrafficOptions
 
+ROAD_STEP_LENGTH = 0.1
+"""The simulation step of the built-in roads (s), written into their .sumocfg."""
+
 EGO_ID = "ego"
 EGO_TYPE = "ego"
 EGO_ROUTE = "ego_route"
@@ -43,7 +46,7 @@ class RoadScenario:
 
     def info(self) -> ScenarioInfo:
         options = {**COMMON_OPTIONS, **TRAFFIC_OPTIONS, **self.defaults}
-        return ScenarioInfo(self.name, self.description, options)
+        return ScenarioInfo(self.name, self.description, options, ROAD_STEP_LENGTH)
 
 
 @dataclass(frozen=True)
@@ -56,7 +59,14 @@ class CustomScenario:
 
     def info(self) -> ScenarioInfo:
         description = f"user scenario {self.sumocfg} with ego route {self.ego_route!r}"
-        return ScenarioInfo(self.name, description, dict(COMMON_OPTIONS), self.step_length())
+        step_length = self.step_length()
+        options = dict(COMMON_OPTIONS)
+        interval = options["decision_interval"]
+        assert isinstance(interval, float)
+        steps = round(interval / step_length)
+        if steps < 1 or abs(steps * step_length - interval) > 1e-9:
+            options["decision_interval"] = step_length  # the default must be one that resets
+        return ScenarioInfo(self.name, description, options, step_length)
 
     def step_length(self) -> float:
         """The config's ``<step-length value=.../>`` (SUMO's default 1 s when absent)."""
@@ -211,7 +221,7 @@ def _config() -> str:
         '        <route-files value="routes.rou.xml"/>\n'
         "    </input>\n"
         "    <time>\n"
-        '        <step-length value="0.1"/>\n'
+        f'        <step-length value="{ROAD_STEP_LENGTH}"/>\n'
         "    </time>\n"
         "    <processing>\n"
         '        <collision.action value="warn"/>\n'

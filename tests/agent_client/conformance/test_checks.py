@@ -1,177 +1,63 @@
 """The conformance kit against in-process servers: a correct one passes, each broken one fails.
 
-The servers are our `Session` with the fake backend behind a ZeroMQ ROUTER in a thread; each
-broken variant rewrites frames to break exactly one rule of docs/protocol.md.
+The servers (`tests.agent_client.conformance.toys`) are our real ZeroMQ serving loop and
+`Session` with the fake backend, in a thread; each broken variant breaks exactly one rule of
+docs/protocol.md.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import threading
+import time
 from collections.abc import Iterator
-from dataclasses import replace
-from typing import Any
 
-import msgpack
 import pytest
 import zmq
 
 from agent_client.cli.main import main
-from agent_client.conformance import FAIL, PASS, WARN, ConformanceReport, run_checks
-from protocol.codec import decode_reply, decode_request, encode
-from protocol.errors import ProtocolError
-from protocol.messages import Close, Hello, Message, Observation, Reset, Step
-from protocol.transport.zeromq import bind_router, connect_req
+from agent_client.conformance import FAIL, PASS, SKIP, WARN, ConformanceReport, run_checks
+from protocol.codec import encode
+from protocol.messages import Close, Hello
+from protocol.transport.zeromq import connect_req
 from protocol.version import PROTOCOL_VERSION
-from sim_server.backends.fake import FakeBackend
-from sim_server.session import Session
+from tests.agent_client.conformance.toys import (
+    AcceptsBin,
+    ActionAtSeqZero,
+    AnswersAnotherSeq,
+    AnswersLate,
+    AnswersTwice,
+    AppliedLaneChangeFive,
+    BothFlags,
+    ClosesForOthers,
+    DropsRequestId,
+    IgnoresSeed,
+    IntegerDefault,
+    KeepsDeadOwner,
+    LaneOutOfRange,
+    NaNSpeed,
+    NoDecisionInterval,
+    NoHandover,
+    NoRetryCache,
+    NoStepLength,
+    NoVersionCheck,
+    OldNoStepLength,
+    ReasonWhileRunning,
+    RefusedResetEndsEpisode,
+    SeqZeroIsARetry,
+    SilentOnGarbage,
+    ToyServer,
+    UnclippedAcceleration,
+    UnknownReason,
+    VagueVersionMessage,
+    WrongErrorCode,
+    WrongSeq,
+    WrongStepLength,
+)
 
 CHECKS = [
-    "handshake", "version_refusal", "schema", "reset", "step", "reconnect", "termination",
-    "bad_requests", "determinism", "close",
+    "transport", "handshake", "version_refusal", "schema", "reset", "step", "reconnect",
+    "ownership", "termination", "ordering", "bad_requests", "error_codes", "determinism", "close",
 ]  # fmt: skip
-
-
-class ToyServer:
-    """A conforming server in a thread; subclasses override `answer` to break one rule."""
-
-    def __init__(self) -> None:
-        self.session = Session(FakeBackend())
-        self._context: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
-        self._socket, endpoint = bind_router(self._context, "tcp://127.0.0.1:0")
-        self.address = str(endpoint)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        """The reply frame, or None to stay silent."""
-        return self.session.handle(peer, frame)
-
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            if not self._socket.poll(20):
-                continue
-            frames = self._socket.recv_multipart()
-            reply = self.answer(frames[0], frames[-1])
-            if reply is not None:
-                self._socket.send_multipart([*frames[:-1], reply])
-
-    def __enter__(self) -> ToyServer:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self._socket.close(linger=0)
-        self._context.term()
-
-
-def request_of(frame: bytes) -> Message | None:
-    try:
-        return decode_request(frame)
-    except ProtocolError:
-        return None
-
-
-def rewrite_observation(reply: bytes, **changes: Any) -> bytes:
-    obs = decode_reply(reply)
-    return encode(replace(obs, **changes)) if isinstance(obs, Observation) else reply
-
-
-class NoRetryCache(ToyServer):
-    """A retried step advances the simulation instead of replaying the cached reply."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.offset = self.last_seq = 0
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        request = request_of(frame)
-        if isinstance(request, Hello | Reset):
-            self.offset = self.last_seq = 0
-        if not isinstance(request, Step):
-            return super().answer(peer, frame)
-        if request.seq == self.last_seq > 0:
-            self.offset += 1
-        reply = self.session.handle(peer, encode(replace(request, seq=request.seq + self.offset)))
-        if isinstance(decode_reply(reply), Observation):
-            self.last_seq = request.seq
-        return rewrite_observation(reply, seq=request.seq)
-
-
-class NaNSpeed(ToyServer):
-    """Observations carry a NaN ego speed."""
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        reply = self.session.handle(peer, frame)
-        wire = msgpack.unpackb(reply, raw=False)
-        if wire["type"] != "observation":
-            return reply
-        wire["ego"]["speed"] = math.nan
-        return msgpack.packb(wire, use_bin_type=True)
-
-
-class WrongSeq(ToyServer):
-    """Step replies carry the next seq instead of the step's own."""
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        reply = self.session.handle(peer, frame)
-        request = request_of(frame)
-        if isinstance(request, Step):
-            return rewrite_observation(reply, seq=request.seq + 1)
-        return reply
-
-
-class IgnoresSeed(ToyServer):
-    """Every reset runs with seed 0: deterministic, but the seed makes no difference."""
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        request = request_of(frame)
-        if isinstance(request, Reset) and request.seed is not None and 0 <= request.seed < 2**31:
-            frame = encode(replace(request, seed=0))
-        return self.session.handle(peer, frame)
-
-
-class WrongErrorCode(ToyServer):
-    """Reports invalid_number as invalid_message."""
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        reply = self.session.handle(peer, frame)
-        return reply.replace(b"invalid_number", b"invalid_message")
-
-
-class NoVersionCheck(ToyServer):
-    """Welcomes any protocol version."""
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        if isinstance(request_of(frame), Hello):
-            frame = encode(Hello(PROTOCOL_VERSION))
-        return self.session.handle(peer, frame)
-
-
-class SilentOnGarbage(ToyServer):
-    """Never answers a frame that is not msgpack."""
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        try:
-            msgpack.unpackb(frame)
-        except ValueError:
-            return None
-        return self.session.handle(peer, frame)
-
-
-class UnclippedAcceleration(ToyServer):
-    """Reports the requested acceleration as applied, far beyond the announced bounds."""
-
-    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
-        reply = self.session.handle(peer, frame)
-        obs = decode_reply(reply)
-        if not isinstance(obs, Observation):
-            return reply
-        action = replace(obs.action, acceleration=obs.action.requested_acceleration)
-        return encode(replace(obs, action=action))
 
 
 def statuses(report: ConformanceReport) -> dict[str, str]:
@@ -205,31 +91,101 @@ def test_cli_prints_a_table(toy: ToyServer, capsys: pytest.CaptureFixture[str]) 
     assert main(["check", "--server", toy.address, "--scenario", "cf"]) == 0
     out = capsys.readouterr().out
     assert out.splitlines()[0].split() == ["check", "result", "detail"]
-    assert "CONFORMS - 10 passed, 0 warnings, 0 failed" in out
+    assert f"CONFORMS - {len(CHECKS)} passed, 0 warnings, 0 failed" in out
+
+
+BROKEN: list[tuple[type[ToyServer], str, str]] = [
+    (DropsRequestId, "transport", "without the request-id frame"),
+    (AnswersTwice, "transport", "exactly one reply"),
+    (AnswersLate, "step", "no reply from"),
+    (AnswersAnotherSeq, "step", "observation.seq = 1: 2 in the reply to step 2"),
+    (NoHandover, "reconnect", "ZMQ_ROUTER_HANDOVER"),
+    (KeepsDeadOwner, "ownership", "still answered busy"),
+    (ClosesForOthers, "ownership", "expected error busy, got bye"),
+    (NoVersionCheck, "version_refusal", "expected error version_mismatch"),
+    (IntegerDefault, "schema", "max_episode_time = 300: a float option"),
+    (NoStepLength, "schema", "step_length: required since protocol 1.2"),
+    (WrongStepLength, "step", "instead of one decision of 0.05 s"),
+    (NaNSpeed, "schema", "observation.ego.speed: nan is not a finite number"),
+    (LaneOutOfRange, "schema", "observation.ego.lane = 7: a lane of the road at the ego, 0..0"),
+    (ActionAtSeqZero, "schema", 'observation.action: zeros and "" at seq 0'),
+    (AppliedLaneChangeFive, "step", "observation.action.lane_change = 5: 0 (refused) or 0"),
+    (WrongSeq, "step", "observation.seq = 2: 1 in the reply to step 1"),
+    (NoRetryCache, "step", "retry"),
+    (UnclippedAcceleration, "step", "observation.action.acceleration = 1000: within the announced"),
+    (ReasonWhileRunning, "step", "observation.reason = 'collision'"),
+    (BothFlags, "termination", "observation.truncated = True: never true with terminated"),
+    (UnknownReason, "termination", "observation.reason = 'timeout': a truncated episode's reason"),
+    (SeqZeroIsARetry, "ordering", "step 0 after reset: expected error sequence_error"),
+    (RefusedResetEndsEpisode, "ordering", "step 2"),
+    (WrongErrorCode, "reset", "seed 2^31: expected error invalid_number, got invalid_message"),
+    (SilentOnGarbage, "bad_requests", "garbage bytes: no reply from"),
+    (AcceptsBin, "error_codes", "a bin scenario: expected error decode_error"),
+]
+"""Each broken server, the check it fails and words of that check's detail."""
 
 
 @pytest.mark.parametrize(
-    ("server_class", "failing"),
-    [
-        (NoRetryCache, "step"),
-        (NaNSpeed, "schema"),
-        (WrongSeq, "step"),
-        (WrongErrorCode, "bad_requests"),
-        (NoVersionCheck, "version_refusal"),
-        (SilentOnGarbage, "bad_requests"),
-        (UnclippedAcceleration, "step"),
-    ],
+    ("server_class", "failing", "words"), BROKEN, ids=[c.__name__ for c, _, _ in BROKEN]
 )
-def test_a_broken_server_fails_its_check_and_exit_1(
-    server_class: type[ToyServer], failing: str, capsys: pytest.CaptureFixture[str]
+def test_a_broken_server_fails_its_check_with_the_rule(
+    server_class: type[ToyServer], failing: str, words: str
 ) -> None:
     with server_class() as server:
+        started = time.monotonic()
         report = run_checks(server.address, timeout_s=1.0)
-    assert statuses(report)[failing] == FAIL, report.format_table()
+        elapsed = time.monotonic() - started
+    result = {r.name: r for r in report.results}[failing]
+    assert result.status == FAIL, report.format_table()
+    assert words in result.detail, report.format_table()
     assert report.exit_code == 1
-    with server_class() as server:
+    assert elapsed < 60, report.format_table()
+    failed_before = [r.name for r in report.results[: CHECKS.index(failing)] if r.status == FAIL]
+    assert failed_before in ([], ["transport"]), report.format_table()
+
+
+def test_a_server_without_the_request_id_frame_is_failed_at_once() -> None:
+    """The hang of issue 14: the kit says why, runs nothing it cannot, and ends quickly."""
+    with DropsRequestId() as server:
+        started = time.monotonic()
+        report = run_checks(server.address, timeout_s=3.0)
+        elapsed = time.monotonic() - started
+    status = statuses(report)
+    assert status["transport"] == FAIL and status["handshake"] == FAIL
+    assert "lack the request-id frame" in report.results[1].detail
+    assert {status[name] for name in CHECKS[2:]} == {SKIP}
+    assert elapsed < 5.0
+
+
+def test_cli_exit_1_and_the_failing_row(capsys: pytest.CaptureFixture[str]) -> None:
+    with WrongSeq() as server:
         assert main(["check", "--server", server.address, "--timeout", "1"]) == 1
-    assert any(line.split()[:2] == [failing, FAIL] for line in capsys.readouterr().out.splitlines())
+    rows = [line.split()[:2] for line in capsys.readouterr().out.splitlines()]
+    assert ["step", FAIL] in rows
+
+
+@pytest.mark.parametrize(
+    ("server_class", "warned", "words"),
+    [
+        (OldNoStepLength, "schema", "announces no step_length (protocol 1.1): assuming 0.1 s"),
+        (VagueVersionMessage, "version_refusal", "does not name 2.0 and 1.2"),
+    ],
+)
+def test_what_the_protocol_allows_but_should_not_be_is_a_warning(
+    server_class: type[ToyServer], warned: str, words: str
+) -> None:
+    with server_class() as server:
+        report = run_checks(server.address, timeout_s=2.0)
+    result = {r.name: r for r in report.results}[warned]
+    assert result.status == WARN and words in result.detail, report.format_table()
+    assert report.exit_code == 0, report.format_table()
+
+
+def test_a_scenario_without_decision_interval_conforms() -> None:
+    with NoDecisionInterval() as server:
+        report = run_checks(server.address, timeout_s=2.0)
+    assert report.exit_code == 0, report.format_table()
+    assert "each 0.1 s long" in {r.name: r for r in report.results}["step"].detail
 
 
 def test_details_name_the_fault() -> None:

@@ -92,3 +92,13 @@ def test_aggregate_pools_the_shares_of_all_samples() -> None:
     assert np.isnan(totals["speed_ratio_to_ceiling"]) and np.isnan(totals["min_ttc"])
     with pytest.raises(ValueError, match="no episodes"):
         aggregate([])
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), float("inf")])
+def test_a_step_length_that_is_no_duration_spreads_jerk_over_the_decision(bad: float) -> None:
+    """`step_length: 0` made `drive` crash with OverflowError (issue 14)."""
+    times = np.array([0.0, 0.1, 0.2])
+    accelerations = np.array([0.0, 1.0, 1.2])
+    jerk, samples = jerk_series(accelerations, times, step_length=bad)
+    expected, expected_samples = jerk_series(accelerations, times, step_length=None)
+    assert np.allclose(jerk, expected) and samples == expected_samples

@@ -1,0 +1,561 @@
+"""Every reply judged against docs/protocol.md: the welcome once, then each reply against the
+request it answers.
+
+The one place where the client checks what a server says, for `RemoteEnv` and for the
+conformance kit alike, so that the kit fails a server with the words the client would raise. A
+broken rule is an `InvalidReply` that names the field, the value and the rule (with its section
+of protocol.md). What the codec already guarantees (types, finite numbers, int64, string
+lengths, string keys) is not checked again.
+
+Rules a newer minor version may extend (the values of `reason`, `acceleration_limited_by`,
+`lane_change_refused` and the error codes) accept unknown values from a server of a newer minor
+version; rules added in 1.2 (a `step_length` for every scenario, the content of the first
+observation) apply to servers of 1.2 and later.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+from agent_client.errors import InvalidReply
+from protocol.errors import ErrorCode
+from protocol.messages import (
+    AccelerationLimit,
+    AppliedAction,
+    Bye,
+    Close,
+    EndReason,
+    Error,
+    Events,
+    Hello,
+    LaneChangeRefusal,
+    Observation,
+    Reply,
+    Request,
+    Reset,
+    Step,
+    Welcome,
+)
+from protocol.schema import NEIGHBOUR_SLOTS, Flattener
+from protocol.version import PROTOCOL_VERSION, format_version
+
+TOLERANCE = 1e-6
+"""Relative slack on floats a server computes (a mean over simulation steps, float32 values)."""
+LEGACY_STEP_LENGTH = 0.1
+"""What a 1.0/1.1 server that announced no `step_length` is assumed to run at when its scenario
+has no `decision_interval` default either (the value our 1.0/1.1 servers announced)."""
+
+WELL_KNOWN_OPTIONS: dict[str, type] = {
+    "decision_interval": float,
+    "max_episode_time": float,
+    "report_ceiling": bool,
+    "ego_driver": str,
+}
+"""Options the client sets when a scenario offers them (protocol.md §2.3), with their types."""
+
+TERMINAL_REASONS = frozenset(r.value for r in EndReason if r.terminates)
+TRUNCATION_REASONS = frozenset(r.value for r in EndReason if not r.terminates)
+ACCELERATION_LIMITS = frozenset(a.value for a in AccelerationLimit)
+LANE_CHANGE_REFUSALS = frozenset(r.value for r in LaneChangeRefusal)
+ERROR_CODES = frozenset(code.value for code in ErrorCode)
+_ANSWERS: dict[type, tuple[type, ...]] = {
+    Hello: (Welcome, Error),
+    Reset: (Observation, Error),
+    Step: (Observation, Error),
+    Close: (Bye, Error),
+}
+_EPISODE_ENDERS = frozenset({ErrorCode.INSERTION_FAILED.value, ErrorCode.SIMULATOR_ERROR.value})
+
+
+# --------------------------------------------------------------------------- the welcome
+
+
+def check_welcome(
+    welcome: Welcome, source: str = "", scenario: str | None = None
+) -> tuple[Welcome, list[str]]:
+    """The welcome with every scenario's step length known, and notes on what was assumed.
+
+    Raises `InvalidReply` for the first broken rule: of the handshake, and of the scenarios
+    (only `scenario`'s when given).
+    """
+    for problem in (*handshake_problems(welcome, source), *scenario_problems(welcome, source)):
+        if (
+            scenario is None
+            or not problem.field.startswith("welcome.scenarios[")
+            or (_scenario_of(welcome, problem.field) == scenario)
+        ):
+            raise problem
+    return with_step_lengths(welcome, source)
+
+
+def handshake_problems(welcome: Welcome, source: str = "") -> list[InvalidReply]:
+    """Broken rules of the welcome outside its scenarios' options (§2.2, §3, §4.6)."""
+    problems: list[InvalidReply] = []
+    rule = _Rules(source, problems)
+    if welcome.protocol[0] != PROTOCOL_VERSION[0]:
+        rule(
+            "welcome.protocol",
+            format_version(welcome.protocol),
+            f"major version {PROTOCOL_VERSION[0]}: a server refuses a hello of another major "
+            "version with version_mismatch (§3 Handshake)",
+        )
+    if not welcome.scenarios:
+        rule("welcome.scenarios", [], "at least one scenario (§2.2)")
+    seen: set[str] = set()
+    for i, info in enumerate(welcome.scenarios):
+        if not info.name or info.name in seen:
+            rule(f"welcome.scenarios[{i}].name", info.name, "a non-empty, unique name (§2.2)")
+        seen.add(info.name)
+    names = [f.name for f in welcome.observation_fields]
+    if not names:
+        rule("welcome.observation_fields", [], "at least one field (§4.6)")
+    for i, name in enumerate(names):
+        if name in names[:i]:
+            rule(f"welcome.observation_fields[{i}].name", name, "each field once (§4.6)")
+    try:
+        Flattener(welcome.observation_fields)
+    except ValueError as exc:
+        rule("welcome.observation_fields", None, f"{exc} (§4.6)")
+    _action_problems(welcome, rule)
+    if not welcome.sensor_range > 0:
+        rule("welcome.sensor_range", welcome.sensor_range, "> 0 m (§2.2)")
+    if not welcome.max_frame_bytes > 0:
+        rule("welcome.max_frame_bytes", welcome.max_frame_bytes, "> 0 (§1)")
+    return problems
+
+
+def _action_problems(welcome: Welcome, rule: _Rules) -> None:
+    action = welcome.action
+    if not action.acceleration_min < 0 < action.acceleration_max:
+        rule(
+            "welcome.action",
+            f"[{action.acceleration_min:g}, {action.acceleration_max:g}]",
+            "acceleration_min < 0 < acceleration_max (§2.2)",
+        )
+    if action.lane_change != {"right": -1, "keep": 0, "left": 1}:
+        rule(
+            "welcome.action.lane_change",
+            action.lane_change,
+            "exactly {right: -1, keep: 0, left: 1} (§2.2)",
+        )
+
+
+def scenario_problems(welcome: Welcome, source: str = "") -> list[InvalidReply]:
+    """Broken rules of the scenarios: step length, option defaults (§2.2, §2.3)."""
+    problems: list[InvalidReply] = []
+    rule = _Rules(source, problems)
+    for i, info in enumerate(welcome.scenarios):
+        where = f"welcome.scenarios[{i}]"
+        step = info.step_length
+        if step is None and welcome.protocol >= (1, 2):
+            rule(f"{where}.step_length", None, "required since protocol 1.2: s > 0 (§2.2)")
+        elif step is not None and not (math.isfinite(step) and step > 0):
+            rule(f"{where}.step_length", step, "the simulation step, a finite number > 0 s (§2.2)")
+        for name, kind in WELL_KNOWN_OPTIONS.items():
+            if name in info.options:
+                _option_problems(f"{where}.options.{name}", info.options[name], kind, rule)
+        interval = info.options.get("decision_interval")
+        if isinstance(interval, float) and interval > 0 and step and step > 0:
+            steps = round(interval / step)
+            if steps < 1 or abs(steps * step - interval) > TOLERANCE * max(1.0, interval):
+                rule(
+                    f"{where}.options.decision_interval",
+                    interval,
+                    f"a whole number of simulation steps of {step:g} s (§2.3)",
+                )
+    return problems
+
+
+def _option_problems(field: str, default: object, kind: type, rule: _Rules) -> None:
+    if kind is float and type(default) is int:
+        rule(
+            field, default, "a float option: its default is a msgpack float (300.0, not 300), §2.3"
+        )
+    elif type(default) is not kind:
+        rule(field, default, f"a {kind.__name__} option (§2.3)")
+    elif kind is float and not default > 0:  # type: ignore[operator]
+        rule(field, default, "> 0 s (§2.3)")
+
+
+def with_step_lengths(welcome: Welcome, source: str = "") -> tuple[Welcome, list[str]]:
+    """The welcome with every missing step length assumed (a 1.0/1.1 server), and a note for
+    each: its scenario's float `decision_interval` default, else `LEGACY_STEP_LENGTH`."""
+    notes, scenarios = [], []
+    for info in welcome.scenarios:
+        if info.step_length is None:
+            interval = info.options.get("decision_interval")
+            assumed = interval if type(interval) is float and interval > 0 else LEGACY_STEP_LENGTH
+            notes.append(
+                f"{source + ': ' if source else ''}scenario {info.name} announces no step_length "
+                f"(protocol {format_version(welcome.protocol)}): assuming {assumed:g} s; jerk "
+                "figures are measured at that step"
+            )
+            info = replace(info, step_length=assumed)
+        scenarios.append(info)
+    return replace(welcome, scenarios=tuple(scenarios)), notes
+
+
+def _scenario_of(welcome: Welcome, field: str) -> str | None:
+    index = field.removeprefix("welcome.scenarios[").split("]", 1)[0]
+    return welcome.scenarios[int(index)].name if index.isdigit() else None
+
+
+# --------------------------------------------------------------------------- every reply
+
+
+class ReplyChecker:
+    """Judges the replies of one session, each against the request it answers.
+
+    Keeps the episode's last observation: a step's reply is checked against it (time goes on,
+    lane changes start from its lane, a retried step gets the cached reply).
+    """
+
+    def __init__(self, welcome: Welcome, source: str = "") -> None:
+        self.welcome = welcome
+        self.source = source
+        self.newer = welcome.protocol[1] > PROTOCOL_VERSION[1]
+        """The server speaks a newer minor version: values unknown to us may be its additions."""
+        self.last: Observation | None = None
+        """The last observation of the running episode (None between episodes)."""
+
+    def check(self, request: Request | None, reply: Reply) -> Reply:
+        """`reply` if it is a valid answer to `request` (None: unknown); else `InvalidReply`."""
+        for problem in self.problems(request, reply):
+            raise problem
+        if isinstance(request, Hello) or (
+            isinstance(reply, Error) and reply.code in _EPISODE_ENDERS
+        ):
+            self.last = None
+        elif isinstance(reply, Observation) and isinstance(request, Reset | Step):
+            self.last = reply
+        return reply
+
+    def problems(self, request: Request | None, reply: Reply) -> list[InvalidReply]:
+        """Every broken rule of `reply` as the answer to `request` (none: valid)."""
+        problems: list[InvalidReply] = []
+        rule = _Rules(self.source, problems)
+        expected = _ANSWERS.get(type(request), ())
+        if expected and not isinstance(reply, expected):
+            names = " or ".join(getattr(kind, "TYPE", "?") for kind in expected)
+            asked = getattr(request, "TYPE", "request")
+            rule("reply.type", reply.TYPE, f"a {asked} is answered by {names} (§2.2)")
+        elif isinstance(reply, Error):
+            if reply.code not in ERROR_CODES and not self.newer:
+                rule("error.code", reply.code, "one of the codes of §5")
+        elif isinstance(reply, Observation):
+            _ObservationRules(self, rule, reply, request).run()
+        return problems
+
+
+class _Rules:
+    """Collects broken rules as `InvalidReply`s of one source."""
+
+    def __init__(self, source: str, into: list[InvalidReply]) -> None:
+        self.source = source
+        self.into = into
+
+    def __call__(self, field: str, value: object, rule: str) -> None:
+        self.into.append(InvalidReply(field, value, rule, self.source))
+
+
+class _ObservationRules:
+    """The rules of one observation (§3, §4), given the request it answers."""
+
+    def __init__(
+        self, checker: ReplyChecker, rule: _Rules, obs: Observation, request: Request | None
+    ) -> None:
+        self.welcome = checker.welcome
+        self.newer = checker.newer
+        self.rule = rule
+        self.obs = obs
+        self.request = request
+        self.last = checker.last if isinstance(request, Step) else None
+
+    def run(self) -> None:
+        obs, request = self.obs, self.request
+        last = self.last
+        if isinstance(request, Step) and last is not None and request.seq == last.seq > 0:
+            if obs != last:  # a retry: nothing else to judge
+                self.rule(
+                    "observation",
+                    None,
+                    f"a retry of step {request.seq} (the same seq) gets the cached reply of its "
+                    "first answer, unchanged (§3 Steps)",
+                )
+            return
+        self.sequence()
+        self.ending()
+        self.ego()
+        self.neighbours()
+        self.events()
+        if isinstance(request, Step):
+            self.action(request)
+        elif isinstance(request, Reset) and self.welcome.protocol >= (1, 2):
+            self.first()
+        self.ceiling()
+
+    def sequence(self) -> None:
+        obs, request = self.obs, self.request
+        if isinstance(request, Reset) and obs.seq != 0:
+            self.rule("observation.seq", obs.seq, "0 in the reply to a reset (§4.1)")
+        elif isinstance(request, Step) and obs.seq != request.seq:
+            self.rule(
+                "observation.seq",
+                obs.seq,
+                f"{request.seq} in the reply to step {request.seq} (§3 Steps)",
+            )
+        last = self.last
+        if last is not None and not obs.time > last.time:
+            self.rule(
+                "observation.time",
+                obs.time,
+                f"later than the previous observation's {last.time:g} s: a step advances the "
+                "simulation (§4.1)",
+            )
+
+    def ending(self) -> None:
+        obs = self.obs
+        if obs.terminated and obs.truncated:
+            self.rule("observation.truncated", True, "never true with terminated (§4.1)")
+        elif isinstance(self.request, Reset) and (obs.terminated or obs.truncated):
+            self.rule(
+                "observation.terminated" if obs.terminated else "observation.truncated",
+                True,
+                "false at seq 0: an episode that cannot start is refused with insertion_failed "
+                "or simulator_error (§3 Reset)",
+            )
+        elif obs.terminated:
+            self._reason(TERMINAL_REASONS, "a terminated episode's reason")
+        elif obs.truncated:
+            self._reason(TRUNCATION_REASONS, "a truncated episode's reason")
+        elif obs.reason:
+            self.rule("observation.reason", obs.reason, '"" while the episode runs (§4.1)')
+
+    def _reason(self, allowed: frozenset[str], what: str) -> None:
+        reason = self.obs.reason
+        if reason not in allowed and not (self.newer and reason and reason not in _ALL_REASONS):
+            self.rule("observation.reason", reason, f"{what}: {_one_of(allowed)} (§4.1)")
+
+    def ego(self) -> None:
+        ego = self.obs.ego
+        driven = self.obs.action.acceleration_limited_by == AccelerationLimit.SIMULATOR.value
+        if ego.speed < 0 and not driven:  # the simulator's own driver may reverse a little
+            self.rule("observation.ego.speed", ego.speed, ">= 0 m/s (§3 Action semantics)")
+        if ego.lane_count < 1:
+            self.rule("observation.ego.lane_count", ego.lane_count, ">= 1 (§4.2)")
+        elif not 0 <= ego.lane < ego.lane_count:
+            self.rule(
+                "observation.ego.lane",
+                ego.lane,
+                f"a lane of the road at the ego, 0..{ego.lane_count - 1} with lane_count "
+                f"{ego.lane_count} (§4.2)",
+            )
+        if ego.changing_lane not in (-1, 0, 1):
+            self.rule("observation.ego.changing_lane", ego.changing_lane, "-1, 0 or 1 (§4.2)")
+        if not ego.speed_limit > 0:
+            self.rule("observation.ego.speed_limit", ego.speed_limit, "> 0 m/s (§4.2)")
+
+    def neighbours(self) -> None:
+        obs, sensed = self.obs, self.welcome.sensor_range
+        lane, lanes = obs.ego.lane, obs.ego.lane_count
+        for slot in NEIGHBOUR_SLOTS:
+            where = f"observation.neighbours.{slot}"
+            other = getattr(obs.neighbours, slot)
+            if not other.present:
+                if (other.gap, other.lateral, other.speed, other.id) == (sensed, 0.0, 0.0, ""):
+                    continue
+                absent = {"gap": sensed, "lateral": 0.0, "speed": 0.0, "id": ""}
+                for key, value in absent.items():
+                    if getattr(other, key) != value:
+                        self.rule(
+                            f"{where}.{key}",
+                            getattr(other, key),
+                            f"{_show(value)} for an absent neighbour (§4.3)",
+                        )
+                continue
+            if other.gap > sensed * (1 + TOLERANCE):
+                self.rule(
+                    f"{where}.gap", other.gap, f"<= sensor_range {sensed:g} m if present (§4.3)"
+                )
+            side = slot.split("_")[0]
+            if (side == "left" and lane >= lanes - 1) or (side == "right" and lane <= 0):
+                self.rule(
+                    f"{where}.present",
+                    True,
+                    f"false: there is no lane to the {side} of lane {lane} of {lanes} (§4.3)",
+                )
+
+    def events(self) -> None:
+        obs, events = self.obs, self.obs.events
+        ended = obs.terminated or obs.truncated
+        if events.collision_with and not events.collision:
+            self.rule(
+                "observation.events.collision_with",
+                events.collision_with,
+                '"" unless events.collision (§4.4)',
+            )
+        for flag, reason in (("collision", "collision"), ("end_of_road", "end_of_road")):
+            happened = getattr(events, flag)
+            if happened and not ended:
+                self.rule(f"observation.events.{flag}", True, "ends the episode (§4.1)")
+            if obs.reason == reason and not happened:
+                self.rule(
+                    "observation.reason", reason, f"comes with events.{flag} true (§4.1, §4.4)"
+                )
+
+    def action(self, step: Step) -> None:
+        action, welcome = self.obs.action, self.welcome
+        low, high = welcome.action.acceleration_min, welcome.action.acceleration_max
+        where = "observation.action"
+        if not _close(action.requested_acceleration, step.acceleration):
+            self.rule(
+                f"{where}.requested_acceleration",
+                action.requested_acceleration,
+                f"{step.acceleration:g}, as the step asked (§4.4)",
+            )
+        if action.requested_lane_change != step.lane_change:
+            self.rule(
+                f"{where}.requested_lane_change",
+                action.requested_lane_change,
+                f"{step.lane_change}, as the step asked (§4.4)",
+            )
+        slack = TOLERANCE * max(1.0, abs(low), abs(high))
+        driven = action.acceleration_limited_by == AccelerationLimit.SIMULATOR.value
+        if not driven and not low - slack <= action.acceleration <= high + slack:
+            self.rule(
+                f"{where}.acceleration",
+                action.acceleration,
+                f"within the announced bounds [{low:g}, {high:g}] m/s^2 (§3 Action semantics)",
+            )
+        self._limit(action, step, low, high)
+        self._lane_change(action, step)
+
+    def _limit(self, action: AppliedAction, step: Step, low: float, high: float) -> None:
+        why, where = action.acceleration_limited_by, "observation.action.acceleration_limited_by"
+        if why and why not in ACCELERATION_LIMITS and not self.newer:
+            self.rule(where, why, f'"" or {_one_of(ACCELERATION_LIMITS)} (§4.4)')
+        elif not why and not low <= step.acceleration <= high:
+            self.rule(
+                where, why, f"names the limit: {step.acceleration:g} is outside the bounds (§4.4)"
+            )
+        elif not why and not _close(action.acceleration, step.acceleration):
+            self.rule(
+                "observation.action.acceleration",
+                action.acceleration,
+                f"{step.acceleration:g}, as asked: acceleration_limited_by is empty (§4.4)",
+            )
+
+    def _lane_change(self, action: AppliedAction, step: Step) -> None:
+        where, refused = "observation.action", action.lane_change_refused
+        asked, applied = step.lane_change, action.lane_change
+        if applied not in (0, asked):
+            self.rule(f"{where}.lane_change", applied, f"0 (refused) or {asked}, as asked (§4.4)")
+        if refused and refused not in LANE_CHANGE_REFUSALS and not self.newer:
+            self.rule(
+                f"{where}.lane_change_refused", refused, f'"" or {_one_of(LANE_CHANGE_REFUSALS)}'
+            )
+        if refused and (applied or not asked):
+            self.rule(
+                f"{where}.lane_change_refused",
+                refused,
+                '"" unless a lane change was asked for and not applied (§4.4)',
+            )
+        elif asked and not applied and not refused:
+            self.rule(f"{where}.lane_change_refused", "", "names why the lane change was refused")
+        events = self.obs.events
+        if events.lane_change_refused != bool(refused):
+            self.rule(
+                "observation.events.lane_change_refused",
+                events.lane_change_refused,
+                f"{bool(refused)}: true exactly when action.lane_change_refused is set (§4.4)",
+            )
+        if events.lane_change_started != bool(applied):
+            self.rule(
+                "observation.events.lane_change_started",
+                events.lane_change_started,
+                f"{bool(applied)}: true exactly when the applied lane_change is not 0 (§4.4)",
+            )
+        if self.last is not None:
+            self._lanes_before(applied, asked, refused, self.last)
+
+    def _lanes_before(self, applied: int, asked: int, refused: str, last: Observation) -> None:
+        """The lane change judged on the lane the decision was taken in (the last observation)."""
+        lane, lanes, where = last.ego.lane, last.ego.lane_count, "observation.action"
+        if applied and not 0 <= lane + applied < lanes:
+            self.rule(
+                f"{where}.lane_change",
+                applied,
+                f"refused (no_lane): there is no lane {lane + applied} beside lane {lane} of "
+                f"{lanes} (§3 Action semantics)",
+            )
+        if refused == "no_lane" and 0 <= lane + asked < lanes:
+            self.rule(
+                f"{where}.lane_change_refused",
+                refused,
+                f"lane {lane + asked} exists beside lane {lane} of {lanes} (§3 Action semantics)",
+            )
+        if self.welcome.protocol < (1, 1):
+            return  # no changing_lane before 1.1
+        under_way = last.ego.changing_lane
+        if refused == "in_progress" and not under_way:
+            self.rule(
+                f"{where}.lane_change_refused",
+                refused,
+                "only while a lane change is under way: the last ego.changing_lane was 0 (§4.2)",
+            )
+        if applied and under_way:
+            self.rule(
+                f"{where}.lane_change",
+                applied,
+                f"0 (in_progress): a lane change was under way (changing_lane {under_way}) (§4.2)",
+            )
+
+    def first(self) -> None:
+        """Seq 0 (since 1.2): nothing has happened and nothing was decided yet."""
+        obs = self.obs
+        if obs.events != Events():
+            self.rule("observation.events", None, "all false at seq 0 (§4.4)")
+        if obs.action != AppliedAction(0.0, 0, 0.0, 0):
+            self.rule("observation.action", None, 'zeros and "" at seq 0 (§4.4)')
+        if obs.ego.changing_lane:
+            self.rule("observation.ego.changing_lane", obs.ego.changing_lane, "0 at seq 0 (§4.2)")
+
+    def ceiling(self) -> None:
+        obs, trip = self.obs, self.obs.ceiling
+        if trip is None:
+            return
+        if not (obs.terminated or obs.truncated):
+            self.rule("observation.ceiling", trip.id, "nil until the last observation (§4.5)")
+            return
+        if (trip.arrival_time is None) != (trip.average_speed is None):
+            self.rule(
+                "observation.ceiling.average_speed",
+                trip.average_speed,
+                "nil exactly when arrival_time is nil (§4.5)",
+            )
+        if trip.arrival_time is not None and trip.arrival_time < trip.depart_time:
+            self.rule(
+                "observation.ceiling.arrival_time",
+                trip.arrival_time,
+                f"not before depart_time {trip.depart_time:g} s (§4.5)",
+            )
+        if trip.average_speed is not None and not trip.average_speed > 0:
+            self.rule("observation.ceiling.average_speed", trip.average_speed, "> 0 m/s (§4.5)")
+
+
+_ALL_REASONS = TERMINAL_REASONS | TRUNCATION_REASONS
+
+
+def _close(value: float, expected: float) -> bool:
+    return abs(value - expected) <= TOLERANCE * max(1.0, abs(expected))
+
+
+def _one_of(values: frozenset[str]) -> str:
+    return ", ".join(sorted(values))
+
+
+def _show(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:g}"
+    return repr(value) if isinstance(value, str) else str(value)
