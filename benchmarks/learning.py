@@ -27,15 +27,16 @@ sys.path.insert(0, str(ROOT))
 
 from agent_client.training.config import TrainConfig, apply_overrides, parse_assignment
 from agent_client.training.trainer import QuietReporter, Trainer
-from sim_server.serve.readiness import LISTENING, NotReady, wait_for_line
+from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 
-def start_server() -> tuple[subprocess.Popen[str], str]:
-    command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
-               "--log-level", "WARNING"]  # fmt: skip
+def start_servers(count: int, scheme: str = "tcp") -> tuple[subprocess.Popen[str], list[str]]:
+    """`count` SUMO servers on free loopback ports, under one `--workers` supervisor."""
+    command = [sys.executable, "-m", "sim_server.cli", "--bind", f"{scheme}://127.0.0.1:0",
+               "--workers", str(count), "--log-level", "WARNING"]  # fmt: skip
     server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
-        return server, wait_for_line(server, LISTENING, 60.0)
+        return server, [wait_for_line(server, LISTENING, 120.0) for _ in range(count)]
     except NotReady:
         server.kill()
         raise
@@ -58,21 +59,30 @@ class Deadline(QuietReporter):
             self.trainer_ref[0].request_stop()
 
 
-def run_one(config: TrainConfig, out: Path, minutes: float, verbose: bool) -> dict[str, Any]:
-    server, address = start_server()
+def run_one(
+    config: TrainConfig, out: Path, minutes: float, verbose: bool, servers: int, eval_servers: int
+) -> dict[str, Any]:
+    supervisors = []
+    train_supervisor, train_addresses = start_servers(servers)
+    supervisors.append(train_supervisor)
+    eval_addresses: list[str] = []
+    if eval_servers:  # on this machine: the plain-socket transport, cheaper per step
+        eval_supervisor, eval_addresses = start_servers(eval_servers, "direct")
+        supervisors.append(eval_supervisor)
     holder: list[Trainer] = []
     try:
-        trainer = Trainer(config, address, out, reporter=Deadline(holder, minutes, verbose))
+        trainer = Trainer(
+            config, train_addresses, out, reporter=Deadline(holder, minutes, verbose),
+            eval_servers=eval_addresses,
+        )  # fmt: skip
         holder.append(trainer)
         try:
             progress = trainer.run()
         finally:
             trainer.close()
     finally:
-        server.terminate()
-        server.wait(timeout=30)
-        if server.stdout is not None:
-            server.stdout.close()
+        for supervisor in supervisors:
+            stop_process(supervisor)
     evaluations = progress.evaluations
     last = evaluations[-1] if evaluations else {}
     return {
@@ -83,9 +93,15 @@ def run_one(config: TrainConfig, out: Path, minutes: float, verbose: bool) -> di
         "minutes_to_converge": (
             None if progress.converged_time is None else progress.converged_time / 60
         ),
+        "steps_to_converge": progress.converged_step,
         "episodes_run": progress.episode,
         "minutes_run": progress.wall_time / 60,
         "steps_run": progress.global_step,
+        "updates_run": progress.updates,
+        "servers": servers,
+        "eval_servers": eval_servers,
+        "evaluation_share": trainer.profile.evaluation_share(),
+        "profile": trainer.profile.to_dict(),
         "last_evaluation": last,
         "evaluations": evaluations,
     }
@@ -101,6 +117,10 @@ def main() -> int:
     parser.add_argument("--eval-episodes", type=int, default=20)
     parser.add_argument("--eval-every", type=int, default=10)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--servers", type=int, default=2, help="training servers (default 2)")
+    parser.add_argument(
+        "--eval-servers", type=int, default=1, help="evaluation servers (default 1; 0: inline)"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmark")
     parser.add_argument("--verbose", action="store_true")
     args = parser.parse_args()
@@ -124,8 +144,10 @@ def main() -> int:
                 update = parse_assignment(assignment)
                 config = apply_overrides(config, update)
             print(f"== {args.scenario} reward={reward} seed={seed}", flush=True)
-            result = run_one(config, args.out / f"{args.scenario}-{reward}-{seed}", args.minutes,
-                             args.verbose)  # fmt: skip
+            folder = args.out / f"{args.scenario}-{reward}-{seed}"
+            result = run_one(
+                config, folder, args.minutes, args.verbose, args.servers, args.eval_servers
+            )
             results.append(result)
             print(f"   {summary_line(result)}", flush=True)
 
@@ -144,7 +166,7 @@ def summary_line(result: dict[str, Any]) -> str:
     last = result["last_evaluation"]
     state = (
         f"converged at episode {result['episodes_to_converge']} "
-        f"({result['minutes_to_converge']:.1f} min)"
+        f"({result['minutes_to_converge']:.1f} min, {result['steps_to_converge']} steps)"
         if result["converged"]
         else f"not converged in {result['episodes_run']} episodes ({result['minutes_run']:.1f} min)"
     )
@@ -161,14 +183,15 @@ def summary_line(result: dict[str, Any]) -> str:
 
 def table(results: list[dict[str, Any]]) -> str:
     lines = [
-        "| reward | seed | converged at (episode / min) | collisions/ep | jerk>5.6 | headway<1s "
-        "| speed / IDM | speed / ceiling |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| reward | seed | converged at (min / episode / env steps) | collisions/ep | jerk>5.6 "
+        "| headway<1s | speed / IDM | speed / ceiling | evaluations' share |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in results:
         last = r["last_evaluation"] or {}
         converged = (
-            f"{r['episodes_to_converge']} / {r['minutes_to_converge']:.1f}"
+            f"{r['minutes_to_converge']:.1f} / {r['episodes_to_converge']} / "
+            f"{r['steps_to_converge']:,}"
             if r["converged"]
             else f"no ({r['episodes_run']} ep, {r['minutes_run']:.1f} min)"
         )
@@ -178,7 +201,8 @@ def table(results: list[dict[str, Any]]) -> str:
             f"| {100 * last.get('jerk_share_above_limit', float('nan')):.2f}% "
             f"| {100 * last.get('headway_share_below_1s', float('nan')):.2f}% "
             f"| {last.get('speed_ratio_to_idm', float('nan')):.3f} "
-            f"| {last.get('speed_ratio_to_ceiling', float('nan')):.3f} |"
+            f"| {last.get('speed_ratio_to_ceiling', float('nan')):.3f} "
+            f"| {100 * r['evaluation_share']:.0f}% |"
         )
     return "\n".join(lines)
 

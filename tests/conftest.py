@@ -73,3 +73,16 @@ def fake_server() -> Iterator[RunningServer]:
     """A server process with the kinematic fake backend (fast)."""
     with sim_server("--backend", "fake") as server:
         yield server
+
+
+@pytest.fixture(scope="module")
+def local_ray() -> Iterator[None]:
+    """A local Ray for a test module: 3 logical CPUs, bound to 127.0.0.1, no dashboard."""
+    ray = pytest.importorskip("ray")
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # loopback, not the host IP
+    ray.init(num_cpus=3, include_dashboard=False, log_to_driver=False)
+    try:
+        yield
+    finally:
+        ray.shutdown()

@@ -27,6 +27,9 @@ def add_parser(commands: Commands) -> None:
     train.add_argument("--reward", help="safe (default), ra1, ra2, ra3, ra4 or rlc")
     train.add_argument("--episodes", type=int, help="training episodes (default 300)")
     train.add_argument(
+        "--minutes", type=float, help="stop after this many minutes (checkpointed; default: none)"
+    )
+    train.add_argument(
         "--algo", choices=("ddpg", "td3"), help="learner (default td3: DDPG with its three fixes)"
     )
     train.add_argument("--seed", type=int, help="seed (default 0)")
@@ -48,6 +51,14 @@ def add_parser(commands: Commands) -> None:
         default=None,
         help="stop after 3 evaluations in a row meet every target",
     )
+    train.add_argument(
+        "--eval-server",
+        action="append",
+        default=[],
+        metavar="ADDRESS",
+        help="a server for the greedy evaluations, which then run while training goes on "
+        "(repeatable; default: evaluate on the first --server, training waiting)",
+    )
     train.add_argument("--resume", type=Path, metavar="RUN", help="continue runs/NAME")
     train.add_argument(
         "--retry-for",
@@ -56,6 +67,18 @@ def add_parser(commands: Commands) -> None:
         metavar="SECONDS",
         help="when the server is lost, wait this long for it (or a restarted one) to answer, "
         "then continue with a new episode; 0 (default) stops the run with a checkpoint",
+    )
+    train.add_argument(
+        "--sampling",
+        choices=("local", "ray"),
+        help="local (default): this process steps every --server at once; ray: one "
+        "asynchronous Ray worker per --server, each with a copy of the policy (docs/ray.md)",
+    )
+    train.add_argument(
+        "--ray-address",
+        metavar="ADDRESS",
+        help='with --sampling ray: "auto" (this machine\'s Ray cluster) or ray://HOST:10001; '
+        "default: start a local Ray",
     )
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=run)
@@ -79,6 +102,9 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         "pretrain_idm": args.pretrain_idm,
         "decision_interval": args.decision_interval,
         "stop_when_converged": args.stop_when_converged,
+        "sampling": args.sampling,
+        "ray_address": args.ray_address,
+        "max_minutes": args.minutes,
     }
     if args.scenario is not None:
         flags["scenario"] = args.scenario
@@ -135,15 +161,17 @@ def run(args: argparse.Namespace) -> int:
     if args.resume is not None:
         saved = json.loads((existing_folder(args.resume, "--resume") / "config.json").read_text())
         config = TrainConfig.from_dict(saved)
-        if args.episodes is not None:
-            config = apply_overrides(config, {"episodes": args.episodes})
+        changes = {"episodes": args.episodes, "max_minutes": args.minutes}
+        config = apply_overrides(config, {k: v for k, v in changes.items() if v is not None})
         out = args.resume
     else:
         config = build_config(args)
         out = args.out or Path("runs") / f"{config.scenario}-{config.reward}-{config.seed}"
     reporter = BarReporter(config.episodes, 0, args.quiet)
     servers = args.server or [DEFAULT_ADDRESS]
-    trainer = Trainer(config, servers, out, args.timeout, reporter, args.retry_for)
+    trainer = Trainer(
+        config, servers, out, args.timeout, reporter, args.retry_for, args.eval_server
+    )
     try:
         reporter.message(
             f"training {config.learner.algo} on {config.scenario} with reward {config.reward} "
@@ -154,6 +182,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         reporter.close()
         trainer.close()
+        close_collector = getattr(trainer.collector, "close", None)  # Ray workers, if any
+        if close_collector is not None:
+            close_collector()
     figure = plot_training(out)
     print(
         f"run folder: {out} (policy.pt, episodes.csv, evaluations.csv, tensorboard/, {figure.name})"

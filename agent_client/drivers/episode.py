@@ -60,19 +60,19 @@ def run_episode(
     on_step: StepHook | None = None,
 ) -> Episode:
     """Drive one episode from reset to its end; returns every observation and reward."""
-    _, info = env.reset(seed=seed, options=options)
+    env.send_reset(seed=seed, options=options)
     recorder = Episode(episode=episode, seed=seed, step_length=env.step_length)
-    obs: Observation = info["observation"]
+    obs = env.receive_reset_observation()
     recorder.add(obs)
     while True:
         action = driver.act(obs)
-        _, reward, terminated, truncated, info = env.step(as_action(*action))
-        after: Observation = info["observation"]
+        env.send_command(*action)
+        after, reward = env.receive_observation()
         recorder.add(after, reward)
         if on_step is not None:
             on_step(obs, action, reward, after)
         obs = after
-        if terminated or truncated:
+        if after.terminated or after.truncated:
             return recorder
 
 

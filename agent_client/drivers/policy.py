@@ -1,7 +1,8 @@
 """A trained policy as a driver: features in, acceleration and lane change out.
 
-``policy.pt`` holds the actor (and the critic that picks the lane), the feature set and the
-acceleration scaling, so `agent-client drive --policy runs/NAME/policy.pt` needs nothing else.
+``policy.pt`` holds the actor (and the critic that picks the lane), the feature set, the lane
+decision cadence and the acceleration scaling, so `agent-client drive --policy
+runs/NAME/policy.pt` needs nothing else.
 """
 
 from __future__ import annotations
@@ -12,11 +13,9 @@ from typing import Any
 
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap, FeatureMismatch
-from agent_client.rl.td3 import Agent, Policy
+from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
+from agent_client.rl.policy import Policy
 from protocol.messages import ActionSchema, Observation
-
-LANE_COMMANDS = (0, 1, -1)
-"""Lane index of the agent -> lane-change command: keep, left, right."""
 
 
 @dataclass(frozen=True)
@@ -39,27 +38,36 @@ class ActionScale:
 
 
 class PolicyDriver:
-    """Drives with a trained policy (greedy)."""
+    """Drives with a trained policy (greedy), asking for lane changes only when they can happen."""
 
     name = "policy"
 
-    def __init__(self, policy: Policy, features: FeatureMap, scale: ActionScale) -> None:
+    def __init__(
+        self, policy: Policy, features: FeatureMap, scale: ActionScale, lanes: LaneChoice
+    ) -> None:
         self.policy = policy
         self.features = features
         self.scale = scale
+        self.lanes = lanes
 
     def act(self, obs: Observation) -> tuple[float, int]:
-        u, lane = self.policy.act(self.features(obs))
+        u, lane = self.policy.act(self.features(obs), self.lanes.mask(obs))
         return self.scale.to_env(u), LANE_COMMANDS[lane]
 
 
 def save_policy(
-    path: Path, agent: Agent, features: str, scale: ActionScale, averaged: bool = False
+    path: Path,
+    policy_state: dict[str, Any],
+    features: FeatureMap,
+    scale: ActionScale,
+    lanes: LaneChoice,
 ) -> None:
-    """Write the deployable part of an agent (no optimiser, no buffer)."""
+    """Write the deployable part of an agent (`Agent.policy_state_dict`: no optimiser, no
+    buffer) with what it needs to drive."""
     state: dict[str, Any] = {
-        "policy": agent.policy_state_dict(averaged),
-        "features": features,
+        "policy": policy_state,
+        "features": features.name,
+        "lane_decision_every": lanes.every,
         "acceleration_bounds": [scale.low, scale.high],
     }
     save_checkpoint(path, state)
@@ -69,11 +77,14 @@ def load_policy_driver(path: Path) -> PolicyDriver:
     """Read a policy file safely and wrap it as a driver."""
     state = load_checkpoint(path)
     low, high = state["acceleration_bounds"]
-    policy, features = Policy.from_state_dict(state["policy"]), FeatureMap(state["features"])
+    every = int(state.get("lane_decision_every", 1))
+    policy = Policy.from_state_dict(state["policy"])
+    features = FeatureMap(state["features"], lane_phase_every=every)
     if policy.obs_dim != features.dim:
         raise FeatureMismatch(
             f"{path}: the policy takes {policy.obs_dim} features, but feature set "
             f"{features.name!r} now has {features.dim} (the file was written by an older "
             "version): train it again"
         )
-    return PolicyDriver(policy, features, ActionScale(low, high))
+    lanes = LaneChoice(policy.n_lane_actions, every)
+    return PolicyDriver(policy, features, ActionScale(low, high), lanes)

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -123,4 +126,23 @@ def write_report(out: Path, evaluation: Evaluation) -> Path:
     plot_jerk_distribution(jerks, metrics, out / JERK_FIGURE)
     path = out / "report.md"
     path.write_text(render_markdown(metrics))
+    return path
+
+
+_IMAGE = re.compile(r"(!\[[^\]]*\]\()([^)/][^)]*\))")
+_HEADING = re.compile(r"^(#+) ", re.MULTILINE)
+
+
+def combine_reports(out: Path, parts: Sequence[Path], title: str) -> Path:
+    """One report.md in `out` from the reports of several evaluations (each in its folder),
+    in order, with their figures linked where they are."""
+    out.mkdir(parents=True, exist_ok=True)
+    sections = [f"# {title}\n"]
+    for part in parts:
+        text = (part / "report.md").read_text()
+        relative = os.path.relpath(part, out).replace("\\", "/")
+        text = _IMAGE.sub(rf"\g<1>{relative}/\g<2>", text)
+        sections.append(_HEADING.sub(r"#\1 ", text))  # one level down, under the title
+    path = out / "report.md"
+    path.write_text("\n".join(sections))
     return path

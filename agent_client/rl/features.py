@@ -74,17 +74,25 @@ FEATURE_SETS: dict[str, Callable[[Observation], list[float]]] = {
 
 
 class FeatureMap:
-    """Named observation -> float32 feature vector of a chosen set."""
+    """Named observation -> float32 feature vector of a chosen set.
 
-    def __init__(self, name: str) -> None:
+    With lane decisions taken every `lane_phase_every` decisions (> 1), the vector ends with the
+    phase between two of them (`LaneChoice.phase`), so the critic knows when it may change lanes.
+    """
+
+    def __init__(self, name: str, lane_phase_every: int = 1) -> None:
         if name not in FEATURE_SETS:
             raise UsageError(f"unknown feature set {name!r}; known: {', '.join(FEATURE_SETS)}")
         self.name = name
         self._extract = FEATURE_SETS[name]
-        self.dim = len(self._extract(_EXAMPLE))
+        self.lane_phase_every = lane_phase_every
+        self.dim = len(self._extract(_EXAMPLE)) + (lane_phase_every > 1)
 
     def __call__(self, obs: Observation) -> np.ndarray:
-        return np.asarray(self._extract(obs), dtype=np.float32)
+        features = self._extract(obs)
+        if self.lane_phase_every > 1:
+            features.append((obs.seq % self.lane_phase_every) / self.lane_phase_every)
+        return np.asarray(features, dtype=np.float32)
 
 
 def _example() -> Observation:

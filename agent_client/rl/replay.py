@@ -1,9 +1,10 @@
 """A uniform experience-replay buffer for the hybrid (acceleration, lane) action.
 
 It stores `terminated`, not `done`: a time-limit truncation is stored as terminated = 0 so that the
-learner still bootstraps from the next state. Arrays are preallocated numpy; `sample` returns torch
-tensors. `state_dict` holds only tensors and plain python values, so a checkpoint that contains it
-loads with `torch.load(..., weights_only=True)`.
+learner still bootstraps from the next state. With several lane choices it also stores which of
+them could happen in the state and in the next state (`mask`, `next_mask`). Arrays are
+preallocated numpy; `sample` returns torch tensors. `state_dict` holds only tensors and plain
+python values, so a checkpoint that contains it loads with `torch.load(..., weights_only=True)`.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 import torch
 
 _FORMAT = "av-bridge-replay"
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2
 
 
 class Batch(NamedTuple):
@@ -32,16 +33,21 @@ class Batch(NamedTuple):
     """(B, obs_dim) float32."""
     terminated: torch.Tensor
     """(B,) float32, 1 where the episode truly ended (no bootstrapping), 0 otherwise."""
+    mask: torch.Tensor | None = None
+    """(B, n_lanes) bool: the lane choices that could happen in `obs` (None: all)."""
+    next_mask: torch.Tensor | None = None
+    """(B, n_lanes) bool: the lane choices that could happen in `next_obs` (None: all)."""
 
-    def to(self, device: torch.device | str) -> Batch:
-        """The same batch on `device` (no copy when already there)."""
-        return Batch(*(t.to(device) for t in self))
+
+FIELDS = ("obs", "next_obs", "acceleration", "lane", "reward", "terminated", "mask", "next_mask")
 
 
 class ReplayBuffer:
     """A ring buffer of transitions with its own seeded generator for uniform sampling."""
 
-    def __init__(self, capacity: int, obs_dim: int, seed: int | None = None) -> None:
+    def __init__(
+        self, capacity: int, obs_dim: int, seed: int | None = None, n_lanes: int = 1
+    ) -> None:
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if obs_dim < 1:
@@ -54,6 +60,9 @@ class ReplayBuffer:
         self.lane = np.zeros(capacity, dtype=np.int64)
         self.reward = np.zeros(capacity, dtype=np.float32)
         self.terminated = np.zeros(capacity, dtype=np.float32)
+        self.n_lanes = int(n_lanes)
+        self.mask = np.ones((capacity, n_lanes), dtype=bool)
+        self.next_mask = np.ones((capacity, n_lanes), dtype=bool)
         self.pos = 0
         self.size = 0
         self.rng = np.random.default_rng(seed)
@@ -73,8 +82,10 @@ class ReplayBuffer:
         reward: float,
         next_obs: np.ndarray,
         terminated: bool,
+        mask: np.ndarray | None = None,
+        next_mask: np.ndarray | None = None,
     ) -> None:
-        """Store one transition, overwriting the oldest one when full."""
+        """Store one transition, overwriting the oldest one when full (masks default to all)."""
         obs_arr = np.asarray(obs, dtype=np.float32)
         next_arr = np.asarray(next_obs, dtype=np.float32)
         if obs_arr.shape != (self.obs_dim,) or next_arr.shape != (self.obs_dim,):
@@ -86,8 +97,8 @@ class ReplayBuffer:
             raise ValueError(
                 f"acceleration must be the normalised action in [-1, 1], got {acceleration}"
             )
-        if lane < 0:
-            raise ValueError(f"lane must be a non-negative index, got {lane}")
+        if not 0 <= lane < self.n_lanes:
+            raise ValueError(f"lane must be an index below {self.n_lanes}, got {lane}")
         i = self.pos
         self.obs[i] = obs_arr
         self.next_obs[i] = next_arr
@@ -95,6 +106,8 @@ class ReplayBuffer:
         self.lane[i] = lane
         self.reward[i] = reward
         self.terminated[i] = float(terminated)
+        self.mask[i] = True if mask is None else mask
+        self.next_mask[i] = True if next_mask is None else next_mask
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -122,8 +135,12 @@ class ReplayBuffer:
             )
         if not len(acc) == len(lanes) == len(rewards) == len(terms) == n:
             raise ValueError(f"all fields must hold {n} transitions")
-        if n > 0 and (np.any(np.abs(acc) > 1.0) or np.any(lanes < 0)):
-            raise ValueError("acceleration must lie in [-1, 1] and lane indices be non-negative")
+        if n > 0 and (
+            np.any(np.abs(acc) > 1.0) or np.any(lanes < 0) or np.any(lanes >= self.n_lanes)
+        ):
+            raise ValueError(
+                f"acceleration must lie in [-1, 1] and lane indices in [0, {self.n_lanes})"
+            )
         if n > self.capacity:  # only the newest `capacity` transitions would survive anyway
             skip = n - self.capacity
             self.pos = (self.pos + skip) % self.capacity
@@ -137,6 +154,8 @@ class ReplayBuffer:
         self.lane[idx] = lanes
         self.reward[idx] = rewards
         self.terminated[idx] = terms
+        self.mask[idx] = True
+        self.next_mask[idx] = True
         self.pos = (self.pos + n) % self.capacity
         self.size = min(self.size + n, self.capacity)
 
@@ -152,6 +171,8 @@ class ReplayBuffer:
             reward=torch.from_numpy(self.reward[idx]),
             next_obs=torch.from_numpy(self.next_obs[idx]),
             terminated=torch.from_numpy(self.terminated[idx]),
+            mask=torch.from_numpy(self.mask[idx]),
+            next_mask=torch.from_numpy(self.next_mask[idx]),
         )
 
     def state_dict(self) -> dict[str, Any]:
@@ -170,6 +191,8 @@ class ReplayBuffer:
             "lane": torch.from_numpy(self.lane[:n].copy()),
             "reward": torch.from_numpy(self.reward[:n].copy()),
             "terminated": torch.from_numpy(self.terminated[:n].copy()),
+            "mask": torch.from_numpy(self.mask[:n].copy()),
+            "next_mask": torch.from_numpy(self.next_mask[:n].copy()),
             "rng": self.rng.bit_generator.state,
         }
 
@@ -180,14 +203,18 @@ class ReplayBuffer:
                 f"not a {_FORMAT} v{_FORMAT_VERSION} state: "
                 f"{state.get('format')!r} v{state.get('version')!r}"
             )
-        if state["capacity"] != self.capacity or state["obs_dim"] != self.obs_dim:
+        if (
+            state["capacity"] != self.capacity
+            or state["obs_dim"] != self.obs_dim
+            or tuple(state["mask"].shape[1:]) != (self.n_lanes,)
+        ):
             raise ValueError(
                 f"buffer shape mismatch: saved capacity={state['capacity']} "
                 f"obs_dim={state['obs_dim']}, this buffer capacity={self.capacity} "
                 f"obs_dim={self.obs_dim}"
             )
         n = int(state["size"])
-        for name in ("obs", "next_obs", "acceleration", "lane", "reward", "terminated"):
+        for name in FIELDS:
             getattr(self, name)[:n] = state[name].numpy()
         self.size = n
         self.pos = int(state["pos"])

@@ -31,10 +31,14 @@ LEARNER = "learner"
 LEGACY_LEARNER = "ddpg"
 """Its name before 0.2, still read from older runs' config.json and ``--set ddpg.KEY``."""
 
-RECOMMENDED_LEARNER = TD3Config.td3(gamma=0.98, noise="ou", max_grad_norm=1.0)
+RECOMMENDED_LEARNER = TD3Config.td3(
+    gamma=0.98, noise="ou", max_grad_norm=1.0, batch_size=128, action_l2=0.1, smoothness=5.0
+)
 """The recommended learner (docs/learner.md): TD3 (DDPG with twin critics, delayed actor updates
 and target smoothing) with a 5 s horizon (gamma 0.98 at 0.1 s decisions), temporally correlated
-exploration and gradient clipping. Plain DDPG with the same settings is `--algo ddpg`."""
+exploration, gradient clipping, minibatches of 128, a small cost on the action (keeps the actor
+out of tanh saturation, where the crash phase after learning starts locks it) and CAPS's
+smoothness term. Plain DDPG with the same settings is `--algo ddpg`."""
 
 
 @dataclass(frozen=True)
@@ -51,10 +55,16 @@ class TrainConfig:
     """Learn lane changes: yes, no, or auto (yes on multi-lane roads)."""
     episodes: int = 300
     """Training episodes."""
+    max_minutes: float | None = None
+    """Stop after this many minutes of wall time (checkpointed, like a Ctrl-C); None: no limit."""
     seed: int = TRAINING_SEED
     """Seed of networks, exploration and of the training episodes (episode i uses seed+i)."""
     decision_interval: float = 0.1
     """Seconds per decision; 1.0 is the paper's enlarged time step."""
+    lane_decision_interval: float = 1.0
+    """Seconds between two lane decisions (a multiple of `decision_interval`): in between, the
+    policy only chooses the acceleration. A lane change is a decision, not a request repeated
+    every 0.1 s (docs/learner.md)."""
     scenario_options: dict[str, Any] = field(default_factory=dict)
     """Extra scenario options sent with every reset (e.g. flow)."""
     warmup_policy: str = "idm"
@@ -73,6 +83,10 @@ class TrainConfig:
     """Greedy evaluation every N episodes (0 disables)."""
     eval_episodes: int = 10
     """Episodes per greedy evaluation."""
+    eval_gate: int = 3
+    """Evaluate only when the last `eval_gate` training episodes ended without a collision (a
+    policy that still crashes with exploration noise is not worth 20 greedy episodes); 0
+    evaluates every `eval_every` episodes regardless."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
     stop_when_converged: bool = False
@@ -82,10 +96,21 @@ class TrainConfig:
     checkpoint_every: int = 10
     """Write a checkpoint every N episodes (and on Ctrl-C / SIGTERM)."""
     deploy_averaged: bool = True
-    """Evaluate and save the target (Polyak-averaged) networks: a smoothed policy that does
-    not jump with every gradient step."""
+    """Evaluate and save the slow average of the networks (`learner.deploy_tau`): a smoothed
+    policy that does not jump with every gradient step."""
     torch_threads: int = 1
     """torch intra-op threads (1 is fastest for small networks on a shared CPU)."""
+    sampling: str = "local"
+    """Where training episodes run: local (this process steps every server at once, the learner
+    updating while they simulate) or ray (one asynchronous Ray worker per server, each with a
+    copy of the policy, feeding the replay buffer while the learner updates; docs/ray.md)."""
+    sampling_chunk: int = 64
+    """sampling = ray: steps a worker takes per request."""
+    policy_sync_every: int = 500
+    """sampling = ray: transitions between two refreshes of the workers' policy copies."""
+    ray_address: str = ""
+    """sampling = ray: "" starts a local Ray, "auto" joins this machine's Ray cluster,
+    ray://HOST:10001 one through Ray Client."""
     learner: TD3Config = field(default_factory=lambda: RECOMMENDED_LEARNER)
     """Learner hyper-parameters (default: `RECOMMENDED_LEARNER`)."""
 
@@ -98,17 +123,38 @@ class TrainConfig:
             "features": ("auto", *FEATURE_SETS),
             "lane_change": ("auto", "yes", "no"),
             "warmup_policy": ("idm", "random"),
+            "sampling": ("local", "ray"),
         }
         for name, valid in choices.items():
             if getattr(self, name) not in valid:
                 raise UsageError(
                     f"{name} {getattr(self, name)!r} is not one of: {', '.join(valid)}"
                 )
-        for name in ("episodes", "eval_episodes", "converged_evals", "checkpoint_every"):
+        for name in (
+            "episodes",
+            "eval_episodes",
+            "converged_evals",
+            "checkpoint_every",
+            "sampling_chunk",
+            "policy_sync_every",
+        ):
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise UsageError(f"max_minutes must be > 0, got {self.max_minutes}")
         if self.decision_interval <= 0:
             raise UsageError(f"decision_interval must be > 0, got {self.decision_interval}")
+        ratio = self.lane_decision_interval / self.decision_interval
+        if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6:
+            raise UsageError(
+                f"lane_decision_interval {self.lane_decision_interval} s is not a multiple of "
+                f"decision_interval {self.decision_interval} s"
+            )
+
+    @property
+    def lane_decision_every(self) -> int:
+        """Decisions per lane decision."""
+        return round(self.lane_decision_interval / self.decision_interval)
 
     def to_dict(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != LEARNER}

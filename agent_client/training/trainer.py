@@ -1,11 +1,14 @@
 """The training loop of the paper's Fig. 1: read the state, score the last action, learn, act.
 
-One learner, one or more remote simulators: every step the learner receives the recognition
-state from each server, computes the reward of its last action from it, stores the transitions
-in one replay buffer, runs its gradient updates and sends the next commands (to all servers at
-once, so they simulate in parallel). Greedy evaluations on held-out seeds, on the first server,
-judge the policy against the IDM baseline and the leader-at-entry ceiling; checkpoints make a
-run resumable.
+One learner, one or more remote simulators. Each iteration sends every server its next command
+(and the evaluation servers theirs), runs the gradient updates due while the simulators compute,
+then receives: the replies become transitions in one replay buffer. Updating while the
+simulator steps is what lets the learner keep up with it (docs/learner.md, "Speed").
+
+Greedy evaluations on held-out seeds judge the policy against the IDM baseline and the
+leader-at-entry ceiling: on servers of their own while training goes on (`eval_servers`), or
+inline on the first training server. Checkpoints make a run resumable; with one server and no
+evaluation server the same seed and configuration give the same run.
 """
 
 from __future__ import annotations
@@ -14,96 +17,62 @@ import dataclasses
 import json
 import signal
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import torch
 
 from agent_client.defaults import PRETRAIN_SEED, STEP_TIMEOUT_S
-from agent_client.drivers.episode import Episode, run_episode
+from agent_client.drivers.episode import run_episode
 from agent_client.drivers.idm import IDMDriver
-from agent_client.drivers.policy import LANE_COMMANDS, ActionScale, PolicyDriver, save_policy
+from agent_client.drivers.policy import ActionScale, PolicyDriver, save_policy
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
-from agent_client.errors import ServerError, ServerUnavailable
+from agent_client.errors import FeatureMismatch, ServerError, ServerUnavailable, UsageError
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_summary
 from agent_client.evaluation.targets import targets_met
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
-from agent_client.rl.features import FeatureMap, FeatureMismatch
+from agent_client.rl.features import FeatureMap
+from agent_client.rl.lanes import LaneChoice
+from agent_client.rl.policy import Policy
+from agent_client.rl.replay import ReplayBuffer
 from agent_client.rl.rewards import q_upper_bound
 from agent_client.rl.td3 import Agent
+from agent_client.training.collect import (
+    EPISODE_FAILURES,
+    MAX_FAILURES_IN_A_ROW,
+    Collected,
+    LocalCollector,
+    Slot,
+)
 from agent_client.training.config import TrainConfig
+from agent_client.training.evaluator import EvaluationJob, Evaluator
+from agent_client.training.exploration import WarmupDriver, learning, noise_scale_at
+from agent_client.training.progress import (
+    Profile,
+    Progress,
+    QuietReporter,
+    Reporter,
+    evaluation_line,
+)
 from agent_client.training.run_log import RunLog
-from protocol.errors import ErrorCode
 from protocol.messages import Observation
 
-EPISODE_FAILURES = (ErrorCode.SIMULATOR_ERROR.value, ErrorCode.INSERTION_FAILED.value)
-"""Error codes after which the server's next reset starts afresh: the trainer tries again."""
-MAX_FAILURES_IN_A_ROW = 5
+if TYPE_CHECKING:
+    from agent_client.training.ray_collect import RayCollector
 
 T = TypeVar("T")
 
-
-class Reporter(Protocol):
-    """Where a run reports progress; the CLI draws a progress bar, tests stay quiet."""
-
-    def message(self, text: str) -> None:
-        """A line for the user."""
-
-    def episode(self, row: dict[str, Any]) -> None:
-        """Metrics of a finished training episode."""
-
-
-class QuietReporter:
-    """Reports nothing."""
-
-    def message(self, text: str) -> None:
-        pass
-
-    def episode(self, row: dict[str, Any]) -> None:
-        pass
-
-
-@dataclass
-class Progress:
-    """Counters that a checkpoint restores."""
-
-    episode: int = 0
-    global_step: int = 0
-    wall_time: float = 0.0
-    passed_in_a_row: int = 0
-    converged_episode: int | None = None
-    converged_time: float | None = None
-    best_score: float = -float("inf")
-    evaluations: list[dict[str, Any]] = field(default_factory=list)
-    reconnects: int = 0
-    failed_episodes: int = 0
-
-
-@dataclass
-class _Slot:
-    """The training episode running on one server."""
-
-    seed: int
-    obs: Observation
-    x: np.ndarray
-    recorder: Episode
-    states: list[np.ndarray] = field(default_factory=list)
-    accelerations: list[float] = field(default_factory=list)
-    lanes: list[int] = field(default_factory=list)
-
-
-Finished = tuple[EpisodeSummary, list[float], float]
-"""A finished training episode: its summary, the critic losses since the last one, its mean Q."""
+__all__ = ["Progress", "QuietReporter", "Reporter", "Trainer"]
 
 
 class Trainer:
-    """Owns the environment, the agent, the buffer and the run folder."""
+    """Owns the environments, the agent, the buffer and the run folder."""
 
     def __init__(
         self,
@@ -113,8 +82,10 @@ class Trainer:
         timeout_s: float = STEP_TIMEOUT_S,
         reporter: Reporter | None = None,
         retry_for_s: float = 0.0,
+        eval_servers: Sequence[str] = (),
     ) -> None:
-        """Train on one `server` address or several (one simulation each, stepped at once).
+        """Train on one `server` address or several (one simulation each, stepped at once);
+        evaluate on `eval_servers` while training (default: inline on the first server).
 
         `retry_for_s` > 0: when a server is lost, wait that long for it to come back.
         """
@@ -124,34 +95,88 @@ class Trainer:
         self.reporter: Reporter = reporter or QuietReporter()
         self.say = self.reporter.message
         torch.set_num_threads(config.torch_threads)
-        options = {"decision_interval": config.decision_interval, **config.scenario_options}
         servers = [server] if isinstance(server, str) else list(server)
+        overlap = set(servers) & set(eval_servers)
+        if overlap:
+            raise UsageError(f"{sorted(overlap)[0]} is both a training and an evaluation server")
+        options = {"decision_interval": config.decision_interval, **config.scenario_options}
         self.vec = RemoteVectorEnv(
             servers, config.scenario, reward=config.reward, timeout_s=timeout_s, **options
         )
+        self.eval_envs: list[RemoteEnv] = []
+        try:
+            for address in eval_servers:
+                self.eval_envs.append(
+                    RemoteEnv(
+                        address,
+                        config.scenario,
+                        reward=config.reward,
+                        timeout_s=timeout_s,
+                        **options,
+                    )
+                )
+            self._build(len(servers))
+        except BaseException:
+            self.close()
+            raise
+
+    def _build(self, n_envs: int) -> None:
+        config = self.config
         self.env: RemoteEnv = self.vec.envs[0]
-        """Where pre-training and the greedy evaluations run."""
+        """Where pre-training and inline evaluations run."""
         multi_lane = self._multi_lane()
         features = config.features if config.features != "auto" else ("lc" if multi_lane else "cf")
         lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
-        self.features = FeatureMap(features)
+        every = config.lane_decision_every if lane_change else 1
+        self.features = FeatureMap(features, lane_phase_every=every)
+        self.lanes = LaneChoice(3 if lane_change else 1, every)
         self.scale = ActionScale.from_schema(self.env.welcome.action)
         self.agent = Agent(
-            self.features.dim, 3 if lane_change else 1, config.learner, config.seed,
-            n_envs=len(servers),
-        )  # fmt: skip
-        from agent_client.rl.replay import ReplayBuffer
-
-        self.buffer = ReplayBuffer(config.learner.buffer_size, self.features.dim, config.seed)
+            self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs
+        )
+        self.buffer = ReplayBuffer(
+            config.learner.buffer_size, self.features.dim, config.seed, self.lanes.n_choices
+        )
         self.rng = np.random.default_rng(config.seed)
         self.idm = IDMDriver()
+        self.warmup = WarmupDriver(
+            config.warmup_policy, self.scale, config.learner.noise_sigma, self.rng
+        )
         self.progress = Progress()
+        self.profile = Profile()
         self.q_bound = q_upper_bound(config.reward, config.learner.gamma)
         self.idm_eval: dict[str, float] | None = None
+        # The leader-at-entry ceiling costs the server a run-on of up to ~100 ms at every
+        # episode end: only the evaluations, whose targets use it, ask for it.
+        reset_options = {"report_ceiling": False} if _offers(self.env, "report_ceiling") else {}
+        self.collector: LocalCollector | RayCollector
+        if config.sampling == "ray":  # one asynchronous Ray worker per server (docs/ray.md)
+            from agent_client.training.ray_collect import ray_collector
+
+            self.collector = ray_collector(
+                config, self.vec, self.features, self.lanes, reset_options,
+                policy_state=self.agent.policy_state_dict,
+                global_step=lambda: self.progress.global_step,
+                lane_epsilon=lambda: self.agent.lane_epsilon, next_seed=self._next_seed,
+                retry_for_s=self.retry_for_s, eval_servers=len(self.eval_envs),
+            )  # fmt: skip
+        else:
+            self.collector = LocalCollector(
+                self.vec.envs, self.features, self.lanes, self.scale, self._choose,
+                self._next_seed, self.agent.reset_noise, reset_options,
+            )  # fmt: skip
+        self.evaluator = Evaluator(self.eval_envs) if self.eval_envs else None
+        self._pairs = n_envs > 1 and config.learner.policy_delay == 2
+        """With several servers the updates due each iteration run as TD3 pairs."""
         self._stop_requested = False
-        self._slots: list[_Slot | None] = [None] * len(servers)
         self._episodes_started = 0
+        self._updates_due = 0
         self._losses: list[float] = []
+        self._evaluation_wanted = False
+        self._failures_in_a_row = 0
+        self._recent_collisions: deque[bool] = deque(maxlen=max(config.eval_gate, 1))
+        self._finished_evaluation: tuple[EvaluationJob, list[EpisodeSummary]] | None = None
+        self._started = time.monotonic()
 
     def _multi_lane(self) -> bool:
         _, info = self.env.reset(seed=self.config.seed)
@@ -167,47 +192,125 @@ class Trainer:
         else:
             (self.out / "config.json").write_text(json.dumps(self.config.to_dict(), indent=2))
         log = RunLog(self.out, resume=resume)
-        started = time.monotonic() - self.progress.wall_time
+        self._started = time.monotonic() - self.progress.wall_time
         try:
             with self._signals():
-                if self.idm_eval is None and self.config.eval_every > 0:
-                    self.say("evaluating the IDM baseline on the evaluation seeds")
-                    self.idm_eval = aggregate(self._resilient(lambda: self._evaluate(self.idm)))
-                    (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
-                if self.config.pretrain_idm and self.progress.global_step == 0:
-                    self._resilient(self._pretrain)
+                self._prepare()
                 self._episodes_started = self.progress.episode
-                while self.progress.episode < self.config.episodes and not self._stop_requested:
-                    for summary, losses, q_mean in self._resilient(self._train_step):
-                        self.progress.episode += 1
-                        self.progress.wall_time = time.monotonic() - started
-                        row = self._episode_row(summary, losses, q_mean)
-                        log.episode(row)
-                        self.reporter.episode(row)
-                        if self._evaluation_due():
-                            evaluation = self._resilient(self._evaluate_policy)
-                            self._slots[0] = None  # the evaluation used the first server
-                            log.evaluation(evaluation)
-                            self.say(evaluation_line(evaluation))
-                            if self._converged():
-                                self._stop_requested = True
-                        if self.progress.episode % self.config.checkpoint_every == 0:
-                            self._checkpoint()
-                        if self._stop_requested or self.progress.episode >= self.config.episodes:
-                            break
+                while not self._finished():
+                    for slot in self._resilient(self._iteration):
+                        self._episode_done(slot, log)
+                    if self._finished_evaluation is not None:
+                        self._evaluation_done(*self._finished_evaluation, log)
+                        self._finished_evaluation = None
         finally:
-            self.progress.wall_time = time.monotonic() - started
+            self.progress.wall_time = time.monotonic() - self._started
             self._checkpoint()
-            self._save_policy("policy_final.pt")
+            self._save_policy("policy_final.pt", self._policy_state())
             if not (self.out / "policy.pt").exists():
-                self._save_policy("policy.pt")
+                self._save_policy("policy.pt", self._policy_state())
+            (self.out / "profile.json").write_text(json.dumps(self.profile.to_dict(), indent=2))
             log.close()
+        self.say(self.profile.line())
         return self.progress
+
+    def request_stop(self) -> None:
+        """Finish the current step, checkpoint and return from `run` (safe from handlers)."""
+        self._stop_requested = True
+
+    def close(self) -> None:
+        if hasattr(self, "collector"):  # absent when the constructor failed before it
+            self.collector.close()  # Ray's sampling workers hold connections of their own
+        self.vec.close()
+        for env in self.eval_envs:
+            env.close()
+
+    # ----------------------------------------------------------------------- the loop
+
+    def _finished(self) -> bool:
+        limit = self.config.max_minutes
+        if limit is not None and time.monotonic() - self._started > 60 * limit:
+            self.say(f"stopping at the time limit of {limit:g} min")
+            self._stop_requested = True
+        return self._stop_requested or self.progress.episode >= self.config.episodes
+
+    def _prepare(self) -> None:
+        """The IDM baseline (inline, or queued on the evaluation servers) and pre-training."""
+        if self.idm_eval is None and self.config.eval_every > 0:
+            every_env = [*self.vec.envs, *self.eval_envs]
+            self.say(
+                f"evaluating the IDM baseline on the evaluation seeds ({len(every_env)} servers)"
+            )
+            job = EvaluationJob("idm", self.idm, self._eval_seeds())
+            summaries = self._resilient(lambda: self._run_inline(job, every_env))
+            self._set_idm_baseline(summaries)
+            self.collector.drop_episodes()
+        if self.config.pretrain_idm and self.progress.global_step == 0:
+            self._resilient(self._pretrain)
+
+    def _iteration(self) -> list[Slot]:
+        """Send, update while the simulators step, receive; returns the episodes that ended."""
+        seconds, clock = self.profile.seconds, time.perf_counter
+        agent, batch_size = self.agent, self.config.learner.batch_size
+        evaluator = self.evaluator if self.evaluator is not None and self.evaluator.busy else None
+        started = clock()
+        self.collector.send()
+        sent = clock()
+        if evaluator is not None:
+            evaluator.send()
+        evaluation_sent = clock()
+        due = self._updates_due
+        if self._pairs:  # TD3's updates two at a time (one compiled call); an odd one waits
+            due -= due % 2
+        if due:
+            batches = [self.buffer.sample(batch_size) for _ in range(due)]
+            self._losses += [metrics["critic_loss"] for metrics in agent.update_many(batches)]
+        self.progress.updates += due
+        self._updates_due -= due
+        updated = clock()
+        collected = self.collector.receive()
+        received = clock()
+        if evaluator is not None:
+            self._finished_evaluation = evaluator.receive()
+        evaluated = clock()
+        self._store(collected)
+        stored = clock()
+        seconds["act_and_send"] += sent - started
+        seconds["evaluation"] += (evaluation_sent - sent) + (evaluated - received)
+        seconds["update"] += updated - evaluation_sent
+        seconds["wait_and_receive"] += received - updated
+        seconds["bookkeeping"] += stored - evaluated
+        self.profile.iterations += 1
+        self._failures_in_a_row = 0
+        return collected.finished
+
+    def _store(self, collected: Collected) -> None:
+        for t in collected.transitions:
+            self.buffer.add(t.x, t.u, t.lane, t.reward, t.next_x, t.terminated, t.mask, t.next_mask)
+        self.progress.global_step += len(collected.transitions)
+        self._updates_due += self.agent.updates_due(len(collected.transitions))
+
+    def _choose(self, slots: Sequence[Slot]) -> tuple[np.ndarray, np.ndarray]:
+        """Warm-up actions before learning starts, the noisy policy afterwards."""
+        step = self.progress.global_step
+        self.agent.noise_scale = noise_scale_at(self.config, step)
+        if learning(self.config, step):
+            if len(slots) == 1:
+                x, masks = slots[0].x[None], slots[0].mask[None]
+            else:
+                x, masks = np.stack([s.x for s in slots]), np.stack([s.mask for s in slots])
+            return self.agent.act_batch(x, explore=True, masks=masks)
+        actions = [self.warmup(slot) for slot in slots]
+        return np.array([u for u, _ in actions]), np.array([lane for _, lane in actions])
+
+    def _next_seed(self) -> int:
+        seed = self.config.seed + self._episodes_started
+        self._episodes_started += 1
+        return seed
 
     def _resilient(self, work: Callable[[], T]) -> T:
         """Run `work`; on a lost server (if a retry time is set) or a failed simulator episode,
         reconnect or reset and run it again. The buffer and the counters are kept."""
-        failures = 0
         while True:
             try:
                 return work()
@@ -215,178 +318,59 @@ class Trainer:
                 if self.retry_for_s <= 0:
                     raise
                 self.say(f"{exc}; waiting up to {self.retry_for_s:g} s for the server")
-                self._slots = [None] * len(self._slots)
-                for env in self.vec.envs:
+                self._drop_running()
+                for env in [*self.vec.envs, *self.eval_envs]:
                     env.reconnect(self.retry_for_s)
                 self.progress.reconnects += 1
                 self.say(f"reconnected to {', '.join(self.vec.addresses)}; new episodes start")
             except ServerError as exc:
-                failures += 1
-                if exc.code not in EPISODE_FAILURES or failures >= MAX_FAILURES_IN_A_ROW:
+                self._failures_in_a_row += 1
+                if exc.code not in EPISODE_FAILURES or (
+                    self._failures_in_a_row >= MAX_FAILURES_IN_A_ROW
+                ):
                     raise
                 self.progress.failed_episodes += 1
-                self._slots = [None] * len(self._slots)
+                self._drop_running()
                 self.say(f"the simulator failed ({exc}); starting new episodes")
 
-    def request_stop(self) -> None:
-        """Finish the current step, checkpoint and return from `run` (safe from handlers)."""
-        self._stop_requested = True
-
-    def close(self) -> None:
-        self.vec.close()
+    def _drop_running(self) -> None:
+        """Forget every episode under way; an interrupted evaluation starts again later."""
+        self.collector.drop_episodes()
+        if self.evaluator is not None and self.evaluator.busy:
+            self.evaluator.abort()
+            self._evaluation_wanted = True
+        self._updates_due = 0
 
     # ----------------------------------------------------------------------- episodes
 
-    def _train_step(self) -> list[Finished]:
-        """One step on every server (starting episodes where none runs), then the updates due."""
-        if self._stop_requested:
-            return []
-        self._start_episodes()
-        slots = [slot for slot in self._slots if slot is not None]
-        us, lanes = self._act(slots)
-        results = self.vec.step_each(
-            [self.scale.to_env(u) for u in us], [LANE_COMMANDS[lane] for lane in lanes]
-        )
-        finished: list[Finished] = []
-        for i, (slot, u, lane, result) in enumerate(zip(slots, us, lanes, results, strict=True)):
-            _, reward, terminated, truncated, info = result
-            next_obs = info["observation"]
-            next_x = self.features(next_obs)
-            self.buffer.add(slot.x, u, lane, reward, next_x, terminated)
-            slot.states.append(slot.x)
-            slot.accelerations.append(u)
-            slot.lanes.append(lane)
-            slot.recorder.add(next_obs, reward)
-            slot.obs, slot.x = next_obs, next_x
-            self.progress.global_step += 1
-            if terminated or truncated:
-                finished.append(self._finish(slot))
-                self._slots[i] = None
-        for _ in range(self.agent.updates_due(len(slots))):
-            metrics = self.agent.update(self.buffer.sample(self.config.learner.batch_size))
-            self._losses.append(metrics["critic_loss"])
-        return finished
+    def _episode_done(self, slot: Slot, log: RunLog) -> None:
+        progress = self.progress
+        progress.episode += 1
+        progress.wall_time = time.monotonic() - self._started
+        row = self._episode_row(slot)
+        log.episode(row)
+        self.reporter.episode(row)
+        self._recent_collisions.append(int(row["collisions"]) > 0)
+        every = self.config.eval_every
+        learning = progress.global_step >= self.config.learner.learning_starts
+        if every > 0 and progress.episode % every == 0 and learning and self._gate_open():
+            self._evaluation_wanted = True
+        if self._evaluation_wanted:
+            self._start_policy_evaluation(log)
+        if progress.episode % self.config.checkpoint_every == 0:
+            self._checkpoint()
 
-    def _start_episodes(self) -> None:
-        """Reset every server without a running episode (at once), each with the next seed."""
-        seeds: dict[int, int | None] = {}
-        for i, slot in enumerate(self._slots):
-            if slot is None:
-                seeds[i] = self.config.seed + self._episodes_started
-                self._episodes_started += 1
-        for i, (_, info) in self.vec.reset_each(seeds).items():
-            obs = info["observation"]
-            seed = int(info["seed"])
-            recorder = Episode(self._episodes_started, seed, self.env.step_length)
-            recorder.add(obs)
-            self.agent.reset_noise(i)
-            self._slots[i] = _Slot(seed, obs, self.features(obs), recorder)
+    def _gate_open(self) -> bool:
+        """No collision in the last `eval_gate` training episodes."""
+        gate = self.config.eval_gate
+        recent = list(self._recent_collisions)[-gate:] if gate else []
+        return len(recent) >= gate and not any(recent)
 
-    def _finish(self, slot: _Slot) -> Finished:
+    def _episode_row(self, slot: Slot) -> dict[str, Any]:
+        summary = episode_summary(slot.episode)
         q = self.agent.q_values(np.stack(slot.states), np.array(slot.accelerations))
         q_mean = float(np.mean(np.take_along_axis(q, np.array(slot.lanes)[:, None], axis=1)))
         losses, self._losses = self._losses, []
-        return episode_summary(slot.recorder), losses, q_mean
-
-    def _act(self, slots: list[_Slot]) -> tuple[list[float], list[int]]:
-        """Warm-up actions before learning starts, the noisy policy afterwards."""
-        cfg = self.config
-        fraction = min(1.0, self.progress.global_step / max(cfg.noise_decay_steps, 1))
-        self.agent.noise_scale = 1.0 + (cfg.noise_final - 1.0) * fraction
-        if self.progress.global_step >= cfg.learner.learning_starts:
-            us, lanes = self.agent.act_batch(np.stack([slot.x for slot in slots]), explore=True)
-            return [float(u) for u in us], [int(lane) for lane in lanes]
-        actions = [self._warmup_action(slot.obs) for slot in slots]
-        return [u for u, _ in actions], [lane for _, lane in actions]
-
-    def _warmup_action(self, obs: Observation) -> tuple[float, int]:
-        cfg = self.config
-        if cfg.warmup_policy == "idm":
-            acceleration, _ = self.idm.act(obs)
-            u = self.scale.to_policy(acceleration) + self.rng.normal(0.0, cfg.learner.noise_sigma)
-            lane = (
-                int(self.rng.integers(self.agent.n_lane_actions)) if self.rng.random() < 0.05 else 0
-            )
-            return float(np.clip(u, -1.0, 1.0)), lane
-        return float(self.rng.uniform(-1.0, 1.0)), int(self.rng.integers(self.agent.n_lane_actions))
-
-    def _pretrain(self) -> None:
-        """Behaviour cloning on IDM's actions, then critic-only updates on that data."""
-        cfg = self.config
-        self.say(f"pre-training: {cfg.pretrain_episodes} IDM episodes through the bridge")
-        states: list[np.ndarray] = []
-        targets: list[float] = []
-
-        def remember(before: Observation, action: Any, reward: float, after: Observation) -> None:
-            x, u = self.features(before), self.scale.to_policy(action[0])
-            self.buffer.add(x, u, 0, reward, self.features(after), after.terminated)
-            states.append(x)
-            targets.append(u)
-
-        for index in range(cfg.pretrain_episodes):
-            seed = PRETRAIN_SEED + 1000 * cfg.seed + index
-            run_episode(self.env, self.idm, seed, index, on_step=remember)
-        loss = self.agent.behaviour_clone(np.stack(states), np.array(targets), cfg.pretrain_epochs)
-        for _ in range(len(states)):
-            self.agent.update(self.buffer.sample(cfg.learner.batch_size), actor=False)
-        self.say(f"pre-training: actor fitted to {len(states)} IDM actions (MSE {loss:.4f})")
-
-    # ----------------------------------------------------------------------- evaluation
-
-    def _evaluate(self, driver: Any) -> list[EpisodeSummary]:
-        cfg = self.config
-        return [
-            episode_summary(run_episode(self.env, driver, cfg.eval_seed + index, index))
-            for index in range(cfg.eval_episodes)
-        ]
-
-    def _evaluation_due(self) -> bool:
-        every = self.config.eval_every
-        return every > 0 and self.progress.episode % every == 0
-
-    def _evaluate_policy(self) -> dict[str, Any]:
-        assert self.idm_eval is not None
-        driver = PolicyDriver(
-            self.agent.policy(self.config.deploy_averaged), self.features, self.scale
-        )
-        result = aggregate(self._evaluate(driver))
-        met = targets_met(result, self.idm_eval)
-        progress = self.progress
-        progress.passed_in_a_row = progress.passed_in_a_row + 1 if all(met.values()) else 0
-        score = sum(met.values()) + result["speed_ratio_to_ceiling"]
-        if score >= progress.best_score:
-            progress.best_score = score
-            self._save_policy("policy.pt")
-        evaluation = {
-            "episode": progress.episode,
-            "global_step": progress.global_step,
-            "wall_time": progress.wall_time,
-            **result,
-            "speed_ratio_to_idm": result["average_speed"] / self.idm_eval["average_speed"],
-            **{f"target_{name}": passed for name, passed in met.items()},
-            "passed_in_a_row": progress.passed_in_a_row,
-        }
-        progress.evaluations.append(evaluation)
-        return evaluation
-
-    def _converged(self) -> bool:
-        progress = self.progress
-        if progress.passed_in_a_row < self.config.converged_evals:
-            return False
-        if progress.converged_episode is None:
-            progress.converged_episode = progress.episode
-            progress.converged_time = progress.wall_time
-            self.say(
-                f"converged: {self.config.converged_evals} passing evaluations in a row at "
-                f"episode {progress.episode} ({progress.wall_time / 60:.1f} min)"
-            )
-        return self.config.stop_when_converged
-
-    # ----------------------------------------------------------------------- bookkeeping
-
-    def _episode_row(
-        self, summary: EpisodeSummary, losses: list[float], q_mean: float
-    ) -> dict[str, Any]:
         return {
             "episode": self.progress.episode,
             "global_step": self.progress.global_step,
@@ -398,16 +382,132 @@ class Trainer:
             "noise_scale": self.agent.noise_scale,
         }
 
-    def _save_policy(self, name: str) -> None:
-        save_policy(
-            self.out / name, self.agent, self.features.name, self.scale, self.config.deploy_averaged
-        )
+    def _pretrain(self) -> None:
+        """Behaviour cloning on IDM's actions, then critic-only updates on that data."""
+        cfg = self.config
+        self.say(f"pre-training: {cfg.pretrain_episodes} IDM episodes through the bridge")
+        states: list[np.ndarray] = []
+        targets: list[float] = []
+
+        def remember(before: Observation, action: Any, reward: float, after: Observation) -> None:
+            x, u = self.features(before), self.scale.to_policy(action[0])
+            mask, next_mask = self.lanes.mask(before), self.lanes.mask(after)
+            self.buffer.add(x, u, 0, reward, self.features(after), after.terminated, mask,
+                            next_mask)  # fmt: skip
+            states.append(x)
+            targets.append(u)
+
+        for index in range(cfg.pretrain_episodes):
+            seed = PRETRAIN_SEED + 1000 * cfg.seed + index
+            run_episode(self.env, self.idm, seed, index, on_step=remember)
+        self.collector.drop_episode(0)  # the first server's training episode was replaced
+        loss = self.agent.behaviour_clone(np.stack(states), np.array(targets), cfg.pretrain_epochs)
+        for _ in range(len(states)):
+            self.agent.update(self.buffer.sample(cfg.learner.batch_size), actor=False)
+        self.say(f"pre-training: actor fitted to {len(states)} IDM actions (MSE {loss:.4f})")
+
+    # ----------------------------------------------------------------------- evaluation
+
+    def _eval_seeds(self) -> list[int]:
+        cfg = self.config
+        return [cfg.eval_seed + index for index in range(cfg.eval_episodes)]
+
+    def _policy_state(self) -> dict[str, Any]:
+        return self.agent.policy_state_dict(self.config.deploy_averaged)
+
+    def _start_policy_evaluation(self, log: RunLog) -> None:
+        """Evaluate the current policy: queued on the evaluation servers, or inline now."""
+        if self.evaluator is not None and self.evaluator.busy:
+            return  # still wanted: starts when the evaluator is free
+        self._evaluation_wanted = False
+        state = self._policy_state()
+        driver = PolicyDriver(Policy.from_state_dict(state), self.features, self.scale, self.lanes)
+        context = {
+            "episode": self.progress.episode,
+            "global_step": self.progress.global_step,
+            "policy_state": state,
+        }
+        job = EvaluationJob("policy", driver, self._eval_seeds(), context, stop_on_collision=True)
+        if self.evaluator is not None:
+            self.evaluator.start(job)
+            return
+        summaries = self._resilient(lambda: self._run_inline(job, self.vec.envs))
+        self.collector.drop_episodes()  # the evaluation used the training servers
+        self._evaluation_done(job, summaries, log)
+
+    def _run_inline(
+        self, job: EvaluationJob, envs: Sequence[RemoteEnv] | None = None
+    ) -> list[EpisodeSummary]:
+        started = time.perf_counter()
+        try:
+            return Evaluator(envs or [self.env]).run(job)
+        finally:
+            self.profile.blocking_evaluation += time.perf_counter() - started
+
+    def _set_idm_baseline(self, summaries: list[EpisodeSummary]) -> None:
+        self.idm_eval = aggregate(summaries)
+        (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
+
+    def _evaluation_done(
+        self, job: EvaluationJob, summaries: list[EpisodeSummary], log: RunLog
+    ) -> None:
+        if job.name == "idm":
+            self._set_idm_baseline(summaries)
+            if self._evaluation_wanted:
+                self._start_policy_evaluation(log)
+            return
+        assert self.idm_eval is not None
+        result = aggregate(summaries)
+        met = targets_met(result, self.idm_eval)
+        progress = self.progress
+        progress.wall_time = time.monotonic() - self._started
+        progress.passed_in_a_row = progress.passed_in_a_row + 1 if all(met.values()) else 0
+        score = sum(met.values()) + result["speed_ratio_to_ceiling"]
+        if score >= progress.best_score:
+            progress.best_score = score
+            self._save_policy("policy.pt", job.context["policy_state"])
+        evaluation = {
+            "episode": job.context["episode"],
+            "global_step": job.context["global_step"],
+            "wall_time": progress.wall_time,
+            **result,
+            "speed_ratio_to_idm": result["average_speed"] / self.idm_eval["average_speed"],
+            **{f"target_{name}": passed for name, passed in met.items()},
+            "passed_in_a_row": progress.passed_in_a_row,
+        }
+        progress.evaluations.append(evaluation)
+        log.evaluation(evaluation)
+        self.say(evaluation_line(evaluation))
+        if self._evaluation_wanted:
+            self._start_policy_evaluation(log)
+        self._check_convergence()
+
+    def _check_convergence(self) -> None:
+        progress = self.progress
+        if progress.passed_in_a_row < self.config.converged_evals:
+            return
+        if progress.converged_episode is None:
+            progress.converged_episode = progress.episode
+            progress.converged_time = progress.wall_time
+            progress.converged_step = progress.global_step
+            self.say(
+                f"converged: {self.config.converged_evals} passing evaluations in a row at "
+                f"episode {progress.episode} ({progress.wall_time / 60:.1f} min, "
+                f"{progress.global_step} steps)"
+            )
+        if self.config.stop_when_converged:
+            self._stop_requested = True
+
+    # ----------------------------------------------------------------------- files
+
+    def _save_policy(self, name: str, policy_state: dict[str, Any]) -> None:
+        save_policy(self.out / name, policy_state, self.features, self.scale, self.lanes)
 
     def _checkpoint(self) -> None:
         state = {
             "agent": self.agent.state_dict(),
             "buffer": self.buffer.state_dict(),
-            "rng": _generator_state(self.rng),
+            "rng": _plain(self.rng.bit_generator.state),
             "progress": _plain(dataclasses.asdict(self.progress)),
             "idm_eval": self.idm_eval,
             "config": self.config.to_dict(),
@@ -423,8 +523,11 @@ class Trainer:
                 f"{self.features.name!r} now has {self.features.dim} (the run was made by an "
                 "older version): start a new run"
             )
-        self.agent.load_state_dict(state["agent"])
-        self.buffer.load_state_dict(state["buffer"])
+        try:
+            self.agent.load_state_dict(state["agent"])
+            self.buffer.load_state_dict(state["buffer"])
+        except ValueError as exc:
+            raise UsageError(f"{self.out}: cannot resume this run: {exc}") from exc
         self.rng.bit_generator.state = state["rng"]
         self.progress = Progress(**state["progress"])
         self.idm_eval = state["idm_eval"]
@@ -435,10 +538,13 @@ class Trainer:
 
     @contextmanager
     def _signals(self) -> Iterator[None]:
-        """Ctrl-C and SIGTERM finish the current step, then checkpoint and return."""
+        """Ctrl-C and SIGTERM finish the current step, then checkpoint and return; a second
+        Ctrl-C interrupts at once (a reply may take up to the step timeout)."""
 
         def on_signal(signum: int, frame: FrameType | None) -> None:
             self.request_stop()
+            if signum == signal.SIGINT:
+                signal.signal(signal.SIGINT, previous[signal.SIGINT])
 
         previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
@@ -448,8 +554,8 @@ class Trainer:
                 signal.signal(signum, handler)
 
 
-def _generator_state(rng: np.random.Generator) -> dict[str, Any]:
-    return _plain(rng.bit_generator.state)  # type: ignore[no-any-return]
+def _offers(env: RemoteEnv, option: str) -> bool:
+    return option in env.scenario_options
 
 
 def _plain(value: Any) -> Any:
@@ -461,18 +567,3 @@ def _plain(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     return value
-
-
-def evaluation_line(evaluation: dict[str, Any]) -> str:
-    passed = [
-        k.removeprefix("target_") for k, v in evaluation.items() if k.startswith("target_") and v
-    ]
-    return (
-        f"  eval @ {evaluation['episode']}: speed {evaluation['average_speed']:.2f} m/s "
-        f"({evaluation['speed_ratio_to_idm']:.3f}x IDM, "
-        f"{evaluation['speed_ratio_to_ceiling']:.3f}x ceiling), "
-        f"collisions/ep {evaluation['collisions_per_episode']:.2f}, "
-        f"jerk>5.6 {100 * evaluation['jerk_share_above_limit']:.2f}%, "
-        f"headway<1s {100 * evaluation['headway_share_below_1s']:.2f}% | "
-        f"passed: {', '.join(passed) or 'none'} | in a row: {evaluation['passed_in_a_row']}"
-    )

@@ -23,9 +23,14 @@ def tiny_policy(path: Path, features: str, lane_actions: int) -> Path:
     """An untrained policy file, as `agent-client train` would write one."""
     from agent_client.drivers.policy import ActionScale, save_policy
     from agent_client.rl.features import FeatureMap
+    from agent_client.rl.lanes import LaneChoice
     from agent_client.rl.td3 import Agent
 
-    save_policy(path, Agent(FeatureMap(features).dim, lane_actions), features, ActionScale(-6, 3))
+    feature_map = FeatureMap(features)
+    agent = Agent(feature_map.dim, lane_actions)
+    save_policy(
+        path, agent.policy_state_dict(), feature_map, ActionScale(-6, 3), LaneChoice(lane_actions)
+    )
     return path
 
 

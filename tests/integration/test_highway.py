@@ -47,7 +47,8 @@ def test_check_command_against_the_highway_server(highway_server: RunningServer)
     assert report["ok"] is True and report["scenario"] == "cf"
     assert {c["name"] for c in report["checks"]} >= CHECKS
     assert {c["status"] for c in report["checks"]} == {PASS}
-    assert "backend highway 1.12" in report["checks"][0]["detail"]
+    details = {c["name"]: c["detail"] for c in report["checks"]}
+    assert "backend highway 1.12" in details["handshake"]
 
 
 def test_the_multi_lane_scenario_conforms(highway_server: RunningServer) -> None:
@@ -69,7 +70,7 @@ def train(server: str, out: Path, scenario: str, episodes: int, *extra: str) -> 
          "--option", "report_ceiling=false", "--option", "vehicles_count=8",
          "--option", "vehicles_behind=2",
          "--set", "eval_every=0", "--set", "checkpoint_every=1",
-         "--set", "learner.learning_starts=20", "--set", "learner.batch_size=16", *extra],
+         "--set", "learner.learning_starts=20", "--set", "learner.batch_size=16", "--set", "learner.compile=false", *extra],
         capture_output=True, text=True, timeout=600, check=False,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr

@@ -25,7 +25,12 @@ FAST = {
     "decision_interval": 1.0,
     "eval_every": 0,
     "checkpoint_every": 1,
-    "learner": {"learning_starts": 300, "batch_size": 64, "updates_per_step": 2.0},
+    "learner": {
+        "learning_starts": 300,
+        "batch_size": 64,
+        "updates_per_step": 2.0,
+        "compile": False,  # the compiled update is tested on its own; here it would only add time
+    },
 }
 
 
@@ -38,7 +43,7 @@ def greedy_return(trainer: Trainer, seeds: range) -> float:
     from agent_client.drivers.episode import run_episode
     from agent_client.evaluation.metrics import episode_summary
 
-    driver = PolicyDriver(trainer.agent.policy(), trainer.features, trainer.scale)
+    driver = PolicyDriver(trainer.agent.policy(), trainer.features, trainer.scale, trainer.lanes)
     return float(
         np.mean([episode_summary(run_episode(trainer.env, driver, s)).total_reward for s in seeds])
     )
@@ -68,7 +73,7 @@ def train_command(server: str, out: Path, *extra: str) -> list[str]:
         sys.executable, "-m", "agent_client.cli.main", "train", "--server", server, "--out", str(out),
         "--quiet", "--decision-interval", "1.0", "--set", "eval_every=0",
         "--set", "checkpoint_every=1", "--set", "learner.learning_starts=200",
-        "--set", "learner.batch_size=64", *extra,
+        "--set", "learner.batch_size=64", "--set", "learner.compile=false", *extra,
     ]  # fmt: skip
 
 
@@ -174,3 +179,97 @@ def test_lane_changing_training_runs_on_cflc(sumo_server: RunningServer, tmp_pat
     rows = read_rows(tmp_path / "episodes.csv")
     assert len(rows) == 2
     assert sum(int(r["lane_changes_started"]) + int(r["lane_changes_refused"]) for r in rows) > 0
+
+
+def run_rows(folder: Path) -> list[dict[str, str]]:
+    """episodes.csv without the wall-clock column."""
+    return [{k: v for k, v in row.items() if k != "wall_time"} for row in read_rows(folder)]
+
+
+def test_the_same_seed_and_configuration_give_the_same_run(
+    sumo_server: RunningServer, tmp_path: Path
+) -> None:
+    # The compiled update, inline evaluations and a checkpoint in between: all of it repeats.
+    config = fast_config(
+        episodes=6, seed=3, eval_every=3, eval_episodes=2,
+        learner={"learning_starts": 150, "batch_size": 32, "compile": True,
+                 "hidden_sizes": [16, 16]},
+    )  # fmt: skip
+    policies = []
+    for name in ("first", "second"):
+        trainer = Trainer(config, sumo_server.address, tmp_path / name)
+        try:
+            trainer.run()
+        finally:
+            trainer.close()
+        policies.append(trainer.agent.policy_state_dict())
+    first, second = (
+        run_rows(tmp_path / "first" / "episodes.csv"),
+        run_rows(tmp_path / "second" / "episodes.csv"),
+    )
+    assert first == second
+    assert len(first) == 6 and float(first[-1]["critic_loss"]) > 0  # it did learn
+    evaluations = [read_rows(tmp_path / name / "evaluations.csv") for name in ("first", "second")]
+    assert [r["average_speed"] for r in evaluations[0]] == [
+        r["average_speed"] for r in evaluations[1]
+    ]
+    for mine, theirs in zip(policies[0]["actor"], policies[1]["actor"], strict=True):
+        assert mine.equal(theirs)
+
+
+def test_evaluations_run_on_their_own_server_while_training_goes_on(
+    scenario_cache: Path, tmp_path: Path
+) -> None:
+    with (
+        sim_server("--backend", "sumo", cache_dir=scenario_cache) as train,
+        sim_server("--backend", "sumo", cache_dir=scenario_cache) as evaluate,
+    ):
+        config = fast_config(episodes=8, eval_every=2, eval_episodes=2)
+        trainer = Trainer(config, train.address, tmp_path, eval_servers=[evaluate.address])
+        try:
+            progress = trainer.run()
+        finally:
+            trainer.close()
+    assert trainer.evaluator is not None
+    assert progress.evaluations, "no evaluation finished while training"
+    assert trainer.profile.seconds["evaluation"] > 0  # it ran inside the training iterations
+    assert trainer.profile.blocking_evaluation < 60  # only the IDM baseline blocked
+    rows = read_rows(tmp_path / "evaluations.csv")
+    assert len(rows) == len(progress.evaluations)
+    assert all(int(r["episodes"]) == 2 for r in rows)
+
+
+def test_a_lane_change_is_asked_for_only_when_it_can_happen(
+    sumo_server: RunningServer, tmp_path: Path
+) -> None:
+    """Untrained, with lane exploration at every lane decision: no request into a lane that does
+    not exist, none while a change is under way, none between two lane decisions."""
+    from agent_client.drivers.episode import run_episode
+    from agent_client.rl.td3 import TD3Config
+
+    trainer = Trainer(
+        fast_config(scenario="cflc", episodes=1, decision_interval=0.1,
+                    learner={"compile": False, "lane_epsilon": 1.0}),
+        sumo_server.address, tmp_path,
+    )  # fmt: skip
+    assert trainer.lanes.every == 10
+    try:
+        agent = trainer.agent
+        assert isinstance(agent.config, TD3Config)
+
+        class Exploring:
+            def act(self, obs: object) -> tuple[float, int]:
+                x, mask = trainer.features(obs), trainer.lanes.mask(obs)  # type: ignore[arg-type]
+                u, lane = agent.act(x, explore=True, mask=mask)
+                return trainer.scale.to_env(max(u, 0.0)), (0, 1, -1)[lane]
+
+        episode = run_episode(trainer.env, Exploring(), seed=11, options={"max_episode_time": 60.0})
+    finally:
+        trainer.close()
+    reasons = [o.action.lane_change_refused for o in episode.observations[1:]]
+    requests = [o.action.requested_lane_change for o in episode.observations[1:]]
+    assert sum(r != 0 for r in requests) > 5  # it did ask
+    assert "no_lane" not in reasons
+    assert "in_progress" not in reasons
+    asked_at = [o.seq for o, r in zip(episode.observations[:-1], requests, strict=True) if r]
+    assert all(seq % 10 == 0 for seq in asked_at)

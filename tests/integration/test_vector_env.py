@@ -57,7 +57,7 @@ def test_training_on_three_servers_fills_one_buffer(
     config = apply_overrides(
         TrainConfig(),
         {"episodes": 9, "eval_every": 0, "scenario_options": {"length": 300.0},
-         "learner": {"learning_starts": 100}},
+         "learner": {"learning_starts": 100, "compile": False}},
     )  # fmt: skip
     trainer = Trainer(config, [s.address for s in fake_servers], tmp_path)
     try:

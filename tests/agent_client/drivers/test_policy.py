@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,8 +10,9 @@ import pytest
 from agent_client.drivers.policy import ActionScale, load_policy_driver, save_policy
 from agent_client.drivers.spec import training_settings
 from agent_client.rl.features import FeatureMap, FeatureMismatch
-from agent_client.rl.td3 import Agent
-from protocol.messages import ActionSchema
+from agent_client.rl.lanes import LaneChoice
+from agent_client.rl.td3 import Agent, TD3Config
+from protocol.messages import ActionSchema, Ego
 from tests.protocol.test_codec import make_observation
 
 
@@ -24,23 +26,38 @@ def test_action_scale_maps_tanh_onto_asymmetric_bounds() -> None:
     assert scale.to_policy(10.0) == 1.0
 
 
-def test_a_saved_policy_drives_like_the_agent(tmp_path: Path) -> None:
-    features = FeatureMap("lc")
-    agent = Agent(features.dim, 3, seed=3)
+@pytest.mark.parametrize("every", [1, 10])
+def test_a_saved_policy_drives_like_the_agent(tmp_path: Path, every: int) -> None:
+    features, lanes = FeatureMap("lc", lane_phase_every=every), LaneChoice(3, every)
+    agent = Agent(features.dim, 3, TD3Config(compile=False), seed=3)
     scale = ActionScale(-6.0, 3.0)
-    save_policy(tmp_path / "policy.pt", agent, "lc", scale)
+    save_policy(tmp_path / "policy.pt", agent.policy_state_dict(), features, scale, lanes)
     driver = load_policy_driver(tmp_path / "policy.pt")
+    assert driver.lanes == lanes
     obs = make_observation()
     acceleration, lane_change = driver.act(obs)
-    u, lane = agent.act(features(obs), explore=False)
+    u, lane = agent.act(features(obs), explore=False, mask=lanes.mask(obs))
     assert acceleration == pytest.approx(scale.to_env(u))
     assert lane_change == (0, 1, -1)[lane]
     assert np.isfinite(acceleration)
 
 
+def test_between_two_lane_decisions_a_saved_policy_keeps_its_lane(tmp_path: Path) -> None:
+    features, lanes = FeatureMap("lc", lane_phase_every=10), LaneChoice(3, 10)
+    agent = Agent(features.dim, 3, TD3Config(compile=False), seed=3)
+    save_policy(tmp_path / "p.pt", agent.policy_state_dict(), features, ActionScale(-6, 3), lanes)
+    driver = load_policy_driver(tmp_path / "p.pt")
+    middle_lane = make_observation(ego=Ego(20.0, 0.0, 1, 3, 100.0, 22.2), seq=3)
+    assert [driver.act(replace(middle_lane, seq=seq))[1] for seq in range(1, 10)] == [0] * 9
+
+
 def test_a_policy_of_an_older_feature_set_is_refused_with_the_reason(tmp_path: Path) -> None:
-    agent = Agent(FeatureMap("lc").dim + 1, 3, seed=3)  # as if "lc" had lost a feature since
-    save_policy(tmp_path / "policy.pt", agent, "lc", ActionScale(-6.0, 3.0))
+    features = FeatureMap("lc")
+    agent = Agent(features.dim + 1, 3, TD3Config(compile=False), seed=3)  # "lc" lost a feature
+    save_policy(
+        tmp_path / "policy.pt", agent.policy_state_dict(), features, ActionScale(-6.0, 3.0),
+        LaneChoice(3),
+    )  # fmt: skip
     with pytest.raises(FeatureMismatch, match=r"takes 24 features.*'lc' now has 23"):
         load_policy_driver(tmp_path / "policy.pt")
 

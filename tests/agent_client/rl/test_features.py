@@ -37,3 +37,10 @@ def test_lane_changing_features_see_the_lanes() -> None:
 def test_unknown_feature_set() -> None:
     with pytest.raises(ValueError, match="known: cf, lc"):
         FeatureMap("pixels")
+
+
+def test_the_lane_decision_phase_is_the_last_feature() -> None:
+    features = FeatureMap("lc", lane_phase_every=10)
+    assert features.dim == FeatureMap("lc").dim + 1
+    phases = [features(make_observation(seq=seq))[-1] for seq in (0, 3, 9, 10, 13)]
+    assert phases == pytest.approx([0.0, 0.3, 0.9, 0.0, 0.3])

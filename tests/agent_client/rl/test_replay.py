@@ -29,7 +29,7 @@ def _roundtrip(state: dict) -> dict:
 
 
 def test_wraps_around_and_keeps_the_newest() -> None:
-    buffer = ReplayBuffer(capacity=5, obs_dim=2, seed=0)
+    buffer = ReplayBuffer(capacity=5, obs_dim=2, seed=0, n_lanes=3)
     _fill(buffer, range(7))
     assert len(buffer) == 5
     assert buffer.full
@@ -41,9 +41,9 @@ def test_wraps_around_and_keeps_the_newest() -> None:
 
 
 def test_add_batch_matches_add_including_wraparound() -> None:
-    single = ReplayBuffer(capacity=6, obs_dim=2, seed=0)
+    single = ReplayBuffer(capacity=6, obs_dim=2, seed=0, n_lanes=3)
     _fill(single, range(9))
-    batched = ReplayBuffer(capacity=6, obs_dim=2, seed=0)
+    batched = ReplayBuffer(capacity=6, obs_dim=2, seed=0, n_lanes=3)
     for chunk in (range(0, 4), range(4, 9)):
         ids = np.array(chunk)
         obs = np.repeat(ids[:, None], 2, axis=1).astype(np.float32)
@@ -58,7 +58,7 @@ def test_add_batch_matches_add_including_wraparound() -> None:
 
 
 def test_sampling_is_uniform_over_the_filled_part() -> None:
-    buffer = ReplayBuffer(capacity=100, obs_dim=1, seed=1)
+    buffer = ReplayBuffer(capacity=100, obs_dim=1, seed=1, n_lanes=3)
     _fill(buffer, range(40))
     counts = np.zeros(100)
     for _ in range(50):
@@ -71,7 +71,7 @@ def test_sampling_is_uniform_over_the_filled_part() -> None:
 
 
 def test_sample_types_and_shapes() -> None:
-    buffer = ReplayBuffer(capacity=10, obs_dim=3, seed=0)
+    buffer = ReplayBuffer(capacity=10, obs_dim=3, seed=0, n_lanes=3)
     _fill(buffer, range(10))
     batch = buffer.sample(8)
     assert batch.obs.shape == batch.next_obs.shape == (8, 3)
@@ -86,7 +86,7 @@ def test_sample_types_and_shapes() -> None:
 
 
 def test_terminated_is_stored_per_transition_not_as_done() -> None:
-    buffer = ReplayBuffer(capacity=30, obs_dim=1, seed=0)
+    buffer = ReplayBuffer(capacity=30, obs_dim=1, seed=0, n_lanes=3)
     _fill(buffer, range(30), terminated_every=4)
     batch = buffer.sample(300)
     ids = batch.reward.numpy().astype(int)
@@ -95,7 +95,7 @@ def test_terminated_is_stored_per_transition_not_as_done() -> None:
 
 
 def test_rejects_bad_transitions() -> None:
-    buffer = ReplayBuffer(capacity=4, obs_dim=2, seed=0)
+    buffer = ReplayBuffer(capacity=4, obs_dim=2, seed=0, n_lanes=3)
     with pytest.raises(ValueError, match="shape"):
         buffer.add(np.zeros(3), 0.0, 0, 0.0, np.zeros(3), False)
     with pytest.raises(ValueError, match=r"\[-1, 1\]"):
@@ -105,11 +105,11 @@ def test_rejects_bad_transitions() -> None:
 
 
 def test_state_dict_roundtrip_with_weights_only_gives_identical_samples() -> None:
-    buffer = ReplayBuffer(capacity=16, obs_dim=3, seed=7)
+    buffer = ReplayBuffer(capacity=16, obs_dim=3, seed=7, n_lanes=3)
     _fill(buffer, range(21), terminated_every=5)  # wrapped
     buffer.sample(5)  # advance the generator
     state = _roundtrip(buffer.state_dict())
-    restored = ReplayBuffer(capacity=16, obs_dim=3, seed=999)
+    restored = ReplayBuffer(capacity=16, obs_dim=3, seed=999, n_lanes=3)
     restored.load_state_dict(state)
     assert (len(restored), restored.pos) == (len(buffer), buffer.pos)
     for _ in range(3):
@@ -123,9 +123,25 @@ def test_state_dict_roundtrip_with_weights_only_gives_identical_samples() -> Non
 
 
 def test_partial_buffer_state_and_mismatch() -> None:
-    buffer = ReplayBuffer(capacity=50, obs_dim=2, seed=0)
+    buffer = ReplayBuffer(capacity=50, obs_dim=2, seed=0, n_lanes=3)
     _fill(buffer, range(3))
     state = _roundtrip(buffer.state_dict())
     assert state["obs"].shape == (3, 2)  # only the used part is saved
     with pytest.raises(ValueError, match="mismatch"):
-        ReplayBuffer(capacity=40, obs_dim=2).load_state_dict(state)
+        ReplayBuffer(capacity=40, obs_dim=2, n_lanes=3).load_state_dict(state)
+
+
+def test_the_lane_masks_of_both_states_are_stored_and_sampled() -> None:
+    buffer = ReplayBuffer(capacity=4, obs_dim=1, seed=0, n_lanes=3)
+    buffer.add(
+        np.zeros(1), 0.0, 0, 0.0, np.zeros(1), False, np.array([1, 0, 1]), np.array([1, 1, 0])
+    )
+    buffer.add(np.ones(1), 0.0, 2, 0.0, np.ones(1), False)  # no masks: every choice possible
+    batch = buffer.sample(64)
+    assert batch.mask is not None and batch.next_mask is not None
+    first = batch.obs[:, 0] == 0
+    assert batch.mask[first].tolist()[0] == [True, False, True]
+    assert batch.next_mask[first].tolist()[0] == [True, True, False]
+    assert batch.mask[~first].all() and batch.next_mask[~first].all()
+    with pytest.raises(ValueError, match="below 3"):
+        buffer.add(np.zeros(1), 0.0, 3, 0.0, np.zeros(1), False)

@@ -1,0 +1,51 @@
+"""The lane choice: which of keep / left / right can happen, and when a lane decision is taken.
+
+A choice that cannot happen is masked, not learned away: a lane that does not exist, or any
+change while one is under way (`Ego.changing_lane`, protocol 1.1). A lane decision is taken at
+every `every`-th decision only (the observation's `seq` says which), so that a lane change is a
+decision and not a request repeated every 0.1 s; in between only "keep" is allowed. The masks
+come from the observation alone, so a saved policy drives with the same rule it learned with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.messages import Observation
+
+LANE_COMMANDS = (0, 1, -1)
+"""Lane choice index -> lane-change command: keep, left, right."""
+KEEP_ONLY = np.array([True])
+
+
+@dataclass(frozen=True)
+class LaneChoice:
+    """The lane choices of a policy (1: keep only, 3: keep/left/right) and their cadence."""
+
+    n_choices: int = 1
+    every: int = 1
+    """A lane decision at every `every`-th decision (1: at each)."""
+
+    def __post_init__(self) -> None:
+        if self.n_choices not in (1, 3):
+            raise ValueError(f"n_choices must be 1 or 3, got {self.n_choices}")
+        if self.every < 1:
+            raise ValueError(f"every must be >= 1, got {self.every}")
+
+    def due(self, obs: Observation) -> bool:
+        """Whether the decision answering `obs` may change lanes."""
+        return obs.seq % self.every == 0
+
+    def phase(self, obs: Observation) -> float:
+        """Where `obs` lies between two lane decisions, in [0, 1)."""
+        return (obs.seq % self.every) / self.every
+
+    def mask(self, obs: Observation) -> np.ndarray:
+        """(n_choices,) bool: the choices that can happen now (keep always can)."""
+        if self.n_choices == 1:
+            return KEEP_ONLY
+        ego = obs.ego
+        free = ego.changing_lane == 0 and self.due(obs)
+        return np.array([True, free and ego.lane + 1 < ego.lane_count, free and ego.lane > 0])

@@ -1,0 +1,131 @@
+"""Greedy evaluations during training: a driver over the held-out seeds, on servers of its own
+while training goes on, or inline on a training server.
+
+With servers of its own (`agent-client train --eval-server`), an evaluation advances one step
+per training iteration on each of them: its requests are sent with the training step's and
+answered while the learner updates, so it costs the learner only choosing the action and reading
+the reply. Without, `run` drives every episode at once and training waits.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from agent_client.drivers.episode import Driver, Episode
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.evaluation.metrics import EpisodeSummary, episode_summary
+from protocol.messages import Observation
+
+
+@dataclass
+class EvaluationJob:
+    """One evaluation: who drives, on which seeds, and what the trainer keeps with the result."""
+
+    name: str
+    """"idm" for the baseline, "policy" for the learner's greedy policy."""
+    driver: Driver
+    seeds: list[int]
+    context: dict[str, Any] = field(default_factory=dict)
+    """The trainer's bookkeeping (the episode it started at, the policy state evaluated...)."""
+    stop_on_collision: bool = False
+    """End the evaluation at its first collision: it has failed, the rest would not change it."""
+
+
+@dataclass
+class _Running:
+    seed_index: int
+    episode: Episode
+    obs: Observation | None = None
+    """None until the reset's reply arrives."""
+
+
+class Evaluator:
+    """Runs `EvaluationJob`s on its environments, one at a time."""
+
+    def __init__(self, envs: Sequence[RemoteEnv]) -> None:
+        if not envs:
+            raise ValueError("an evaluator needs at least one environment")
+        self.envs = list(envs)
+        self.job: EvaluationJob | None = None
+        self._next_seed = 0
+        self._running: list[_Running | None] = [None] * len(self.envs)
+        self._sent: list[str | None] = [None] * len(self.envs)
+        self._done: dict[int, EpisodeSummary] = {}
+
+    @property
+    def busy(self) -> bool:
+        return self.job is not None
+
+    def start(self, job: EvaluationJob) -> None:
+        if self.job is not None:
+            raise RuntimeError("an evaluation is already running")
+        self.job = job
+        self._next_seed = 0
+        self._done = {}
+
+    def send(self) -> None:
+        """Start the next step (or episode) of the running job on every environment."""
+        job = self.job
+        if job is None:
+            return
+        for index, env in enumerate(self.envs):
+            running = self._running[index]
+            if running is None and self._next_seed < len(job.seeds):
+                seed_index, self._next_seed = self._next_seed, self._next_seed + 1
+                seed = job.seeds[seed_index]
+                env.send_reset(seed=seed)
+                episode = Episode(episode=seed_index, seed=seed, step_length=env.step_length)
+                self._running[index] = _Running(seed_index, episode)
+                self._sent[index] = "reset"
+            elif running is not None and running.obs is not None:
+                acceleration, lane_change = job.driver.act(running.obs)
+                env.send_command(acceleration, lane_change)
+                self._sent[index] = "step"
+
+    def receive(self) -> tuple[EvaluationJob, list[EpisodeSummary]] | None:
+        """Read what `send` started; the job and its summaries (in seed order) once it is done."""
+        job = self.job
+        if job is None:
+            return None
+        for index, env in enumerate(self.envs):
+            sent, self._sent[index] = self._sent[index], None
+            running = self._running[index]
+            if sent is None or running is None:
+                continue
+            if sent == "reset":
+                running.obs = env.receive_reset_observation()
+                running.episode.add(running.obs)
+                continue
+            running.obs, reward = env.receive_observation()
+            running.episode.add(running.obs, reward)
+            if running.obs.terminated or running.obs.truncated:
+                self._done[running.seed_index] = summary = episode_summary(running.episode)
+                self._running[index] = None
+                if job.stop_on_collision and summary.collisions:
+                    return self._finish(job)
+        if len(self._done) < len(job.seeds):
+            return None
+        return self._finish(job)
+
+    def _finish(self, job: EvaluationJob) -> tuple[EvaluationJob, list[EpisodeSummary]]:
+        """The job's summaries in seed order; episodes still running are given up."""
+        summaries = [self._done[i] for i in sorted(self._done)]
+        self.abort()
+        return job, summaries
+
+    def run(self, job: EvaluationJob) -> list[EpisodeSummary]:
+        """The whole evaluation at once (nothing else runs on these servers meanwhile)."""
+        self.start(job)
+        while True:
+            self.send()
+            result = self.receive()
+            if result is not None:
+                return result[1]
+
+    def abort(self) -> None:
+        """Give the running evaluation up; `start` may begin another."""
+        self.job = None
+        self._running = [None] * len(self.envs)
+        self._sent = [None] * len(self.envs)

@@ -1,0 +1,204 @@
+"""A sampling worker: training episodes on one server with a copy of the learner's policy.
+
+The worker is the trainer's own `LocalCollector` on one `RemoteEnv`, with a chooser of its own
+(`Exploration`: a numpy copy of the policy, its own exploration noise, the warm-up driver) in
+place of the trainer's agent. `RayCollector` runs one per sim-server as a Ray actor and asks it
+for chunks of steps while the learner updates; the class itself needs no Ray, so tests and a
+single machine can run it in-process.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from agent_client.drivers.policy import ActionScale
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import ServerError, ServerUnavailable
+from agent_client.rl.features import FeatureMap
+from agent_client.rl.lanes import LaneChoice
+from agent_client.rl.networks import NumpyActor, NumpyCritic
+from agent_client.rl.noise import ActionNoise, make_noise
+from agent_client.training.collect import (
+    EPISODE_FAILURES,
+    MAX_FAILURES_IN_A_ROW,
+    LocalCollector,
+    Slot,
+    Transition,
+)
+from agent_client.training.exploration import WarmupDriver
+from protocol.messages import OptionValue
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """Everything a worker needs to build its env, features and exploration (picklable)."""
+
+    address: str
+    scenario: str
+    reward: str
+    options: dict[str, Any]
+    """`RemoteEnv` scenario options (decision_interval included)."""
+    reset_options: dict[str, OptionValue]
+    features: str
+    lane_phase_every: int
+    n_lanes: int
+    lane_every: int
+    noise: str
+    noise_sigma: float
+    noise_theta: float
+    noise_dt: float
+    warmup_policy: str
+    seed: int
+    timeout_s: float
+    retry_for_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The learner's exploration schedule at the time of a request."""
+
+    learning: bool
+    """False: warm-up actions (IDM + noise, or random), True: the policy copy + noise."""
+    noise_scale: float = 1.0
+    lane_epsilon: float = 0.0
+
+
+@dataclass
+class Chunk:
+    """What one request brought back from a worker."""
+
+    transitions: list[Transition] = field(default_factory=list)
+    finished: list[Slot] = field(default_factory=list)
+    failed_episodes: int = 0
+    reconnects: int = 0
+    seconds: float = 0.0
+    """Time the worker spent sampling it."""
+
+
+class Exploration:
+    """The worker's chooser: what `Trainer._choose` does with the agent, on a policy copy."""
+
+    def __init__(self, spec: WorkerSpec, scale: ActionScale, seed: int) -> None:
+        self.spec = spec
+        self.scale = scale
+        choices, noise = np.random.SeedSequence(seed).generate_state(2)
+        self.rng = np.random.default_rng(int(choices))
+        self.noise: ActionNoise = make_noise(
+            spec.noise, spec.noise_sigma, int(noise), spec.noise_theta, spec.noise_dt
+        )
+        self.settings = Settings(learning=False)
+        self.warmup = WarmupDriver(spec.warmup_policy, scale, spec.noise_sigma, self.rng)
+        self._actor: NumpyActor | None = None
+        self._critic: NumpyCritic | None = None
+
+    def load(self, policy_state: dict[str, Any]) -> None:
+        """Take a new policy copy (`Agent.policy_state_dict()`: the actor, critic 1 for lanes)."""
+        self._actor = NumpyActor([torch.as_tensor(p).clone() for p in policy_state["actor"]])
+        critic = policy_state.get("critic")
+        self._critic = NumpyCritic([torch.as_tensor(p).clone() for p in critic]) if critic else None
+
+    def configure(self, settings: Settings) -> None:
+        """Follow the learner's schedule: warm-up or policy, noise scale, lane epsilon."""
+        self.settings = settings
+        self.noise.scale = settings.noise_scale
+
+    def __call__(self, slots: Sequence[Slot]) -> tuple[np.ndarray, np.ndarray]:
+        actions = [self._act(slot) for slot in slots]
+        return np.array([u for u, _ in actions]), np.array([lane for _, lane in actions])
+
+    def _act(self, slot: Slot) -> tuple[float, int]:
+        if not self.settings.learning or self._actor is None:
+            return self.warmup(slot)
+        x = slot.x[None].astype(np.float32)
+        u = float(self._actor(x)[0]) + self.noise.sample()
+        u = float(np.clip(u, -1.0, 1.0))
+        if self._critic is None or self.spec.n_lanes == 1:
+            return u, 0
+        q = self._critic(x, np.array([u], np.float32))[0]
+        lane = int(np.where(slot.mask, q, -np.inf).argmax())
+        if self.rng.random() < self.settings.lane_epsilon:
+            lane = int(self.rng.choice(np.flatnonzero(slot.mask)))
+        return u, lane
+
+
+class SamplingWorker:
+    """Training episodes on one server, a chunk of steps per `sample` call.
+
+    Episode seeds are ``first_seed + index + stride * k`` for its k-th episode, so that the
+    workers of one run never share one. A failed simulator episode is started again; a lost
+    server is waited for up to `WorkerSpec.retry_for_s` (0: the error goes to the caller).
+    """
+
+    def __init__(self, spec: WorkerSpec, index: int, stride: int, first_seed: int) -> None:
+        self.spec = spec
+        self.index = index
+        self.env = RemoteEnv(
+            spec.address, spec.scenario, reward=spec.reward, timeout_s=spec.timeout_s,
+            **spec.options,
+        )  # fmt: skip
+        features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
+        lanes = LaneChoice(spec.n_lanes, spec.lane_every)
+        scale = ActionScale.from_schema(self.env.welcome.action)
+        self.exploration = Exploration(spec, scale, spec.seed + 7919 * (index + 1))
+        self._seeds = (first_seed + index + stride * k for k in range(2**31))
+        self.local = LocalCollector(
+            [self.env], features, lanes, scale, self.exploration, self._next_seed,
+            self._episode_started, spec.reset_options,
+        )  # fmt: skip
+        self._failures_in_a_row = 0
+
+    def sample(
+        self, n_steps: int, settings: Settings, policy_state: dict[str, Any] | None = None
+    ) -> Chunk:
+        """Take at least `n_steps` steps (episodes carry on across calls) and return them."""
+        started = time.perf_counter()
+        if policy_state is not None:
+            self.exploration.load(policy_state)
+        self.exploration.configure(settings)
+        chunk = Chunk()
+        while len(chunk.transitions) < n_steps:
+            try:
+                self.local.send()
+                collected = self.local.receive()
+            except ServerError as exc:
+                self._failures_in_a_row += 1
+                if exc.code not in EPISODE_FAILURES or (
+                    self._failures_in_a_row >= MAX_FAILURES_IN_A_ROW
+                ):
+                    raise
+                chunk.failed_episodes += 1
+                self.local.drop_episodes()
+                continue
+            except ServerUnavailable:
+                if self.spec.retry_for_s <= 0:
+                    raise
+                self.local.drop_episodes()
+                self.env.reconnect(self.spec.retry_for_s)
+                chunk.reconnects += 1
+                continue
+            self._failures_in_a_row = 0
+            chunk.transitions += collected.transitions
+            chunk.finished += collected.finished
+        for slot in chunk.finished:
+            slot.env_index = self.index
+        chunk.seconds = time.perf_counter() - started
+        return chunk
+
+    def drop_episodes(self) -> None:
+        """Forget the running episode: the next `sample` starts a new one."""
+        self.local.drop_episodes()
+
+    def close(self) -> None:
+        self.env.close()
+
+    def _next_seed(self) -> int:
+        return next(self._seeds)
+
+    def _episode_started(self, index: int) -> None:
+        self.exploration.noise.reset()
