@@ -16,7 +16,7 @@ where a training iteration's time goes, measured in one run against the same ser
     python benchmarks/learner.py --scenario cflc --transport direct --save
 
 This is a measurement, not a test: it prints what it measured and, with --save, writes
-benchmarks/results/learner-SCENARIO-TRANSPORT.json.
+benchmarks/results/learner-SCENARIO-TRANSPORT[-Nservers].json.
 """
 
 from __future__ import annotations
@@ -157,6 +157,8 @@ def training_rate(
             trainer.run()
         finally:
             trainer.close()
+    if len(clock.marks) < 2 or clock.marks[-1][0] <= clock.marks[0][0]:
+        raise SystemExit("too few episode ends to measure a rate: give it more --seconds")
     (t0, s0, u0), (t1, s1, u1) = clock.marks[0], clock.marks[-1]
     return {
         "env_steps_per_s": (s1 - s0) / (t1 - t0),
@@ -211,7 +213,8 @@ def main() -> int:
         stop_process(server)
     print_result(result)
     if args.save:
-        path = RESULTS / f"learner-{args.scenario}-{args.transport}.json"
+        servers = f"-{args.servers}servers" if args.servers > 1 else ""
+        path = RESULTS / f"learner-{args.scenario}-{args.transport}{servers}.json"
         path.write_text(json.dumps(result, indent=2) + "\n")
         print(f"wrote {path.relative_to(ROOT)}")
     return 0

@@ -119,7 +119,11 @@ def main() -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--servers", type=int, default=2, help="training servers (default 2)")
     parser.add_argument(
-        "--eval-servers", type=int, default=1, help="evaluation servers (default 1; 0: inline)"
+        "--eval-servers",
+        type=int,
+        default=0,
+        help="evaluation servers of their own (default 0: inline on the training servers, as "
+        "`agent-client train` does without --eval-server)",
     )
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmark")
     parser.add_argument("--verbose", action="store_true")

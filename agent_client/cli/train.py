@@ -57,7 +57,7 @@ def add_parser(commands: Commands) -> None:
         default=[],
         metavar="ADDRESS",
         help="a server for the greedy evaluations, which then run while training goes on "
-        "(repeatable; default: evaluate on the first --server, training waiting)",
+        "(repeatable; default: evaluate on the --server(s), training waiting)",
     )
     train.add_argument("--resume", type=Path, metavar="RUN", help="continue runs/NAME")
     train.add_argument(
@@ -181,10 +181,7 @@ def run(args: argparse.Namespace) -> int:
         progress = trainer.run(resume=args.resume is not None)
     finally:
         reporter.close()
-        trainer.close()
-        close_collector = getattr(trainer.collector, "close", None)  # Ray workers, if any
-        if close_collector is not None:
-            close_collector()
+        trainer.close()  # closes the collector too (Ray's workers, if any)
     figure = plot_training(out)
     print(
         f"run folder: {out} (policy.pt, episodes.csv, evaluations.csv, tensorboard/, {figure.name})"

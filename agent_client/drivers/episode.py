@@ -8,9 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, Protocol
-
-import numpy as np
+from typing import Protocol
 
 from agent_client.envs.remote_env import RemoteEnv
 from protocol.messages import Observation, OptionValue
@@ -43,11 +41,6 @@ class Driver(Protocol):
 
 StepHook = Callable[[Observation, tuple[float, int], float, Observation], None]
 """Called after every step with (observation before, action, reward, observation after)."""
-
-
-def as_action(acceleration: float, lane_change: int) -> dict[str, Any]:
-    """The `RemoteEnv` action of an acceleration (m/s^2) and a lane change."""
-    return {"acceleration": np.array([acceleration], np.float32), "lane_change": lane_change}
 
 
 def run_episode(

@@ -62,9 +62,9 @@ class TrainConfig:
     decision_interval: float = 0.1
     """Seconds per decision; 1.0 is the paper's enlarged time step."""
     lane_decision_interval: float = 1.0
-    """Seconds between two lane decisions (a multiple of `decision_interval`): in between, the
-    policy only chooses the acceleration. A lane change is a decision, not a request repeated
-    every 0.1 s (docs/learner.md)."""
+    """Seconds between two lane decisions (rounded to whole decisions, at least one): in
+    between, the policy only chooses the acceleration. A lane change is a decision, not a
+    request repeated every 0.1 s (docs/learner.md)."""
     scenario_options: dict[str, Any] = field(default_factory=dict)
     """Extra scenario options sent with every reset (e.g. flow)."""
     warmup_policy: str = "idm"
@@ -85,7 +85,7 @@ class TrainConfig:
     """Episodes per greedy evaluation."""
     eval_gate: int = 3
     """Evaluate only when the last `eval_gate` training episodes ended without a collision (a
-    policy that still crashes with exploration noise is not worth 20 greedy episodes); 0
+    policy that still crashes with exploration noise is not worth `eval_episodes` greedy ones); 0
     evaluates every `eval_every` episodes regardless."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
@@ -144,17 +144,16 @@ class TrainConfig:
             raise UsageError(f"max_minutes must be > 0, got {self.max_minutes}")
         if self.decision_interval <= 0:
             raise UsageError(f"decision_interval must be > 0, got {self.decision_interval}")
-        ratio = self.lane_decision_interval / self.decision_interval
-        if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6:
+        if self.lane_decision_interval <= 0:
             raise UsageError(
-                f"lane_decision_interval {self.lane_decision_interval} s is not a multiple of "
-                f"decision_interval {self.decision_interval} s"
+                f"lane_decision_interval must be > 0, got {self.lane_decision_interval}"
             )
 
     @property
     def lane_decision_every(self) -> int:
-        """Decisions per lane decision."""
-        return round(self.lane_decision_interval / self.decision_interval)
+        """Decisions per lane decision: `lane_decision_interval` in whole decisions, at least one
+        (so any `decision_interval` works, also on a one-lane road where lanes are not learned)."""
+        return max(1, round(self.lane_decision_interval / self.decision_interval))
 
     def to_dict(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != LEARNER}

@@ -30,7 +30,9 @@ class EvaluationJob:
     context: dict[str, Any] = field(default_factory=dict)
     """The trainer's bookkeeping (the episode it started at, the policy state evaluated...)."""
     stop_on_collision: bool = False
-    """End the evaluation at its first collision: it has failed, the rest would not change it."""
+    """End the evaluation at its first collision: it has failed, the rest would not change it.
+    The replies in flight on the other servers are read first; the summaries are those of the
+    episodes that finished (the aggregate's ``episodes`` says how many)."""
 
 
 @dataclass
@@ -89,7 +91,8 @@ class Evaluator:
         job = self.job
         if job is None:
             return None
-        for index, env in enumerate(self.envs):
+        crashed = False
+        for index, env in enumerate(self.envs):  # every reply in flight is read, even after a crash
             sent, self._sent[index] = self._sent[index], None
             running = self._running[index]
             if sent is None or running is None:
@@ -103,11 +106,10 @@ class Evaluator:
             if running.obs.terminated or running.obs.truncated:
                 self._done[running.seed_index] = summary = episode_summary(running.episode)
                 self._running[index] = None
-                if job.stop_on_collision and summary.collisions:
-                    return self._finish(job)
-        if len(self._done) < len(job.seeds):
-            return None
-        return self._finish(job)
+                crashed = crashed or (job.stop_on_collision and summary.collisions > 0)
+        if crashed or len(self._done) == len(job.seeds):
+            return self._finish(job)
+        return None
 
     def _finish(self, job: EvaluationJob) -> tuple[EvaluationJob, list[EpisodeSummary]]:
         """The job's summaries in seed order; episodes still running are given up."""

@@ -20,6 +20,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
+from agent_client.defaults import RESET_TIMEOUT_S
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError, UsageError
 from agent_client.training.collect import Collected
@@ -88,6 +89,8 @@ class RayCollector:
         self._worker_versions: list[int] = []
         self._since_sync = 0
         self._started_ray = False
+        self.chunk_timeout_s = chunk_steps * spec.timeout_s + RESET_TIMEOUT_S + spec.retry_for_s
+        """The longest a chunk can take: every step and a reset at their deadlines, one outage."""
         self.failed_episodes = 0
         self.reconnects = 0
         self.chunks = 0
@@ -116,14 +119,20 @@ class RayCollector:
         ray = self._ray
         collected = Collected()
         while not collected.transitions and not collected.finished and self._pending:
-            ray.wait(list(self._pending), num_returns=1)  # the first chunk back, then all ready
+            first, _ = ray.wait(list(self._pending), num_returns=1, timeout=self.chunk_timeout_s)
+            if not first:
+                busy = ", ".join(self.servers[i] for i in sorted(set(self._pending.values())))
+                raise SamplingFailed(
+                    f"no sampling worker returned a chunk within {self.chunk_timeout_s:g} s "
+                    f"(workers of {busy})"
+                )
             ready, _ = ray.wait(list(self._pending), num_returns=len(self._pending), timeout=0)
             for ref in ready:
                 index = self._pending.pop(ref)
-                chunk = self._get(ref, index)
-                if ref in self._stale:
+                if ref in self._stale:  # asked for before drop_episodes: not wanted, even failed
                     self._stale.discard(ref)
                     continue
+                chunk = self._get(ref, index)
                 self.chunks += 1
                 self.failed_episodes += chunk.failed_episodes
                 self.reconnects += chunk.reconnects

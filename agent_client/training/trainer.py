@@ -7,7 +7,7 @@ simulator steps is what lets the learner keep up with it (docs/learner.md, "Spee
 
 Greedy evaluations on held-out seeds judge the policy against the IDM baseline and the
 leader-at-entry ceiling: on servers of their own while training goes on (`eval_servers`), or
-inline on the first training server. Checkpoints make a run resumable; with one server and no
+inline, spread over the training servers. Checkpoints make a run resumable; with one server and no
 evaluation server the same seed and configuration give the same run.
 """
 
@@ -85,7 +85,7 @@ class Trainer:
         eval_servers: Sequence[str] = (),
     ) -> None:
         """Train on one `server` address or several (one simulation each, stepped at once);
-        evaluate on `eval_servers` while training (default: inline on the first server).
+        evaluate on `eval_servers` while training (default: inline, on the training servers).
 
         `retry_for_s` > 0: when a server is lost, wait that long for it to come back.
         """
@@ -308,6 +308,13 @@ class Trainer:
         self._episodes_started += 1
         return seed
 
+    def _own_connections(self) -> list[RemoteEnv]:
+        """The connections this process drives: with Ray sampling the training servers belong
+        to the workers (which reconnect on their own), only the evaluation servers to us."""
+        if isinstance(self.collector, LocalCollector):
+            return [*self.vec.envs, *self.eval_envs]
+        return list(self.eval_envs)
+
     def _resilient(self, work: Callable[[], T]) -> T:
         """Run `work`; on a lost server (if a retry time is set) or a failed simulator episode,
         reconnect or reset and run it again. The buffer and the counters are kept."""
@@ -319,7 +326,7 @@ class Trainer:
                     raise
                 self.say(f"{exc}; waiting up to {self.retry_for_s:g} s for the server")
                 self._drop_running()
-                for env in [*self.vec.envs, *self.eval_envs]:
+                for env in self._own_connections():
                     env.reconnect(self.retry_for_s)
                 self.progress.reconnects += 1
                 self.say(f"reconnected to {', '.join(self.vec.addresses)}; new episodes start")

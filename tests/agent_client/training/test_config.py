@@ -6,6 +6,7 @@ import pytest
 
 from agent_client.cli.main import build_parser
 from agent_client.cli.train import build_config
+from agent_client.errors import UsageError
 from agent_client.training.config import (
     TrainConfig,
     apply_overrides,
@@ -50,3 +51,18 @@ def test_precedence_defaults_file_flags_set(tmp_path: Path) -> None:
     assert config.learner.critic_lr == 0.01
     assert config.learner.algo == "ddpg"  # --algo switches the trio off, keeps the rest
     assert config.learner.gamma == TrainConfig().learner.gamma
+
+
+@pytest.mark.parametrize(
+    ("decision", "lane", "every"), [(0.1, 1.0, 10), (0.3, 1.0, 3), (2.0, 1.0, 1), (0.5, 0.5, 1)]
+)
+def test_lane_decisions_come_every_whole_number_of_decisions(
+    decision: float, lane: float, every: int
+) -> None:
+    config = TrainConfig(decision_interval=decision, lane_decision_interval=lane)
+    assert config.lane_decision_every == every
+
+
+def test_a_lane_decision_interval_must_be_positive() -> None:
+    with pytest.raises(UsageError, match="lane_decision_interval"):
+        TrainConfig(lane_decision_interval=0.0)
