@@ -21,6 +21,7 @@ import numpy as np
 
 from agent_client.constants import PAPER_SPEED_LIMIT
 from agent_client.errors import FeatureMismatch, UsageError
+from agent_client.rl.lanes import lane_phase
 from protocol.messages import Neighbour, Observation
 
 __all__ = ["FEATURE_SETS", "FeatureMap", "FeatureMismatch", "car_following", "lane_changing"]
@@ -91,7 +92,7 @@ class FeatureMap:
     def __call__(self, obs: Observation) -> np.ndarray:
         features = self._extract(obs)
         if self.lane_phase_every > 1:
-            features.append((obs.seq % self.lane_phase_every) / self.lane_phase_every)
+            features.append(lane_phase(obs.seq, self.lane_phase_every))
         return np.asarray(features, dtype=np.float32)
 
 

@@ -40,7 +40,7 @@ class LaneChoice:
 
     def phase(self, obs: Observation) -> float:
         """Where `obs` lies between two lane decisions, in [0, 1)."""
-        return (obs.seq % self.every) / self.every
+        return lane_phase(obs.seq, self.every)
 
     def mask(self, obs: Observation) -> np.ndarray:
         """(n_choices,) bool: the choices that can happen now (keep always can)."""
@@ -49,3 +49,20 @@ class LaneChoice:
         ego = obs.ego
         free = ego.changing_lane == 0 and self.due(obs)
         return np.array([True, free and ego.lane + 1 < ego.lane_count, free and ego.lane > 0])
+
+
+def lane_phase(seq: int, every: int) -> float:
+    """Where decision `seq` lies between two lane decisions taken every `every`, in [0, 1)."""
+    return (seq % every) / every
+
+
+def choose_lanes(
+    q: np.ndarray, valid: np.ndarray, epsilon: float, rng: np.random.Generator | None
+) -> np.ndarray:
+    """(N,) lane choice indices from Q values (N, K): the best valid choice; with `rng`
+    (exploring), a uniformly random valid one instead with probability `epsilon`."""
+    lanes = np.where(valid, q, -np.inf).argmax(axis=1).astype(np.int64)
+    if rng is not None:
+        for i in np.flatnonzero(rng.random(len(lanes)) < epsilon):
+            lanes[i] = rng.choice(np.flatnonzero(valid[i]))
+    return lanes

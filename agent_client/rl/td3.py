@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from agent_client.errors import UsageError
+from agent_client.rl.lanes import choose_lanes
 from agent_client.rl.networks import (
     NumpyActor,
     NumpyCritic,
@@ -290,11 +291,8 @@ class Agent:
             return acceleration, np.zeros(n, dtype=np.int64)
         valid = all_valid(n, self.n_lane_actions) if masks is None else np.asarray(masks, bool)
         q = self._act_critic(batch, acceleration)
-        lanes = np.where(valid, q, -np.inf).argmax(axis=1).astype(np.int64)
-        if explore:
-            for i in np.flatnonzero(self.rng.random(n) < self.lane_epsilon):
-                lanes[i] = self.rng.choice(np.flatnonzero(valid[i]))
-        return acceleration, lanes
+        rng = self.rng if explore else None
+        return acceleration, choose_lanes(q, valid, self.lane_epsilon, rng)
 
     @torch.no_grad()
     def q_values(self, obs: np.ndarray, acceleration: np.ndarray | float) -> np.ndarray:

@@ -21,7 +21,7 @@ from agent_client.drivers.policy import ActionScale
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import ServerError, ServerUnavailable
 from agent_client.rl.features import FeatureMap
-from agent_client.rl.lanes import LaneChoice
+from agent_client.rl.lanes import LaneChoice, choose_lanes
 from agent_client.rl.networks import NumpyActor, NumpyCritic
 from agent_client.rl.noise import ActionNoise, make_noise
 from agent_client.training.collect import (
@@ -120,11 +120,9 @@ class Exploration:
         u = float(np.clip(u, -1.0, 1.0))
         if self._critic is None or self.spec.n_lanes == 1:
             return u, 0
-        q = self._critic(x, np.array([u], np.float32))[0]
-        lane = int(np.where(slot.mask, q, -np.inf).argmax())
-        if self.rng.random() < self.settings.lane_epsilon:
-            lane = int(self.rng.choice(np.flatnonzero(slot.mask)))
-        return u, lane
+        q = self._critic(x, np.array([u], np.float32))
+        lanes = choose_lanes(q, slot.mask[None], self.settings.lane_epsilon, self.rng)
+        return u, int(lanes[0])
 
 
 class SamplingWorker:

@@ -3,9 +3,10 @@ lane decision."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
+from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice, choose_lanes
 from protocol.messages import Ego
 from tests.protocol.test_codec import make_observation
 
@@ -48,3 +49,12 @@ def test_one_lane_choice_is_keep_only_and_commands_are_keep_left_right() -> None
         LaneChoice(2)
     with pytest.raises(ValueError, match="every"):
         LaneChoice(3, every=0)
+
+
+def test_choose_lanes_takes_the_best_valid_choice_and_explores_only_valid_ones() -> None:
+    q = np.array([[1.0, 5.0, 3.0], [2.0, 1.0, 9.0]])
+    valid = np.array([[True, False, True], [True, True, False]])
+    assert choose_lanes(q, valid, 0.0, None).tolist() == [2, 0]
+    rng = np.random.default_rng(0)
+    explored = np.array([choose_lanes(q, valid, 1.0, rng) for _ in range(200)])
+    assert set(explored[:, 0]) == {0, 2} and set(explored[:, 1]) == {0, 1}
