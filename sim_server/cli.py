@@ -33,7 +33,7 @@ from sim_server.session import DEFAULT_SESSION_TIMEOUT_S, Session
 SECRET_KEY_ENV = "SIM_SERVER_SECRET_KEY"
 AUTHORIZED_KEYS_ENV = "SIM_SERVER_AUTHORIZED_KEYS"
 
-BACKENDS = ("sumo", "sumo-traci", "fake", "highway")
+BACKENDS = ("sumo", "sumo-traci", "fake", "highway", "replay")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 USAGE_STATUS = 2
 """Exit status of a refused command line (as argparse's own)."""
@@ -91,7 +91,15 @@ def _add_simulator_arguments(group: argparse._ArgumentGroup) -> None:
         choices=BACKENDS,
         default="sumo",
         help="simulator: sumo (libsumo, in-process), sumo-traci (SUMO over its TraCI socket), "
-        "highway (highway-env) or fake (kinematic toy for tests)",
+        "highway (highway-env), fake (kinematic toy for tests) or replay (a recording, "
+        "--recording)",
+    )
+    group.add_argument(
+        "--recording",
+        type=Path,
+        metavar="DIR",
+        help="with --backend replay: the folder `agent-client drive/evaluate --record` wrote "
+        "(docs/recording.md)",
     )
     group.add_argument(
         "--gui",
@@ -272,6 +280,7 @@ def _check_exposure(
 
 def _check_simulator(args: argparse.Namespace) -> None:
     """The simulator options fit --backend."""
+    _check_recording(args)
     for given, name in ((args.gui, "--gui"), (args.traci_port is not None, "--traci-port")):
         if given and args.backend != "sumo-traci":
             raise UsageError(f"{name} needs --backend sumo-traci, not --backend {args.backend}")
@@ -291,6 +300,18 @@ def _check_simulator(args: argparse.Namespace) -> None:
         raise UsageError(f"--sumocfg {args.sumocfg}: no such file")
     if not args.ego_route:
         raise UsageError("--sumocfg needs --ego-route (a route id defined in your route files)")
+
+
+def _check_recording(args: argparse.Namespace) -> None:
+    """--backend replay and --recording go together, and the folder exists."""
+    if args.recording is None:
+        if args.backend == "replay":
+            raise UsageError("--backend replay needs --recording DIR (a recording folder)")
+        return
+    if args.backend != "replay":
+        raise UsageError(f"--recording needs --backend replay, not --backend {args.backend}")
+    if not args.recording.is_dir():
+        raise UsageError(f"--recording {args.recording}: no such folder")
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
@@ -333,6 +354,14 @@ def _backend(args: argparse.Namespace) -> Backend:
         from sim_server.backends.highway import HighwayBackend
 
         return HighwayBackend()
+    if args.backend == "replay":
+        from protocol.recording import RecordingError
+        from sim_server.backends.replay import ReplayBackend
+
+        try:
+            return ReplayBackend(args.recording)
+        except RecordingError as exc:  # its message starts with the file or folder at fault
+            raise UsageError(f"--recording {exc}") from exc
     from sim_server.backends.sumo.backend import SumoBackend
     from sim_server.backends.sumo.scenarios import CustomScenario
 

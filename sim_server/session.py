@@ -20,7 +20,6 @@ from protocol.messages import (
     Error,
     Hello,
     Message,
-    OptionValue,
     Reset,
     ScenarioInfo,
     Step,
@@ -30,6 +29,7 @@ from protocol.schema import OBSERVATION_FIELDS
 from protocol.version import PROTOCOL_VERSION, format_version, is_compatible
 from sim_server import __version__
 from sim_server.backends.base import Backend
+from sim_server.backends.options import merge_options
 from sim_server.errors import BackendError
 
 log = logging.getLogger("sim_server")
@@ -60,19 +60,18 @@ class Session:
         self.max_frame_bytes = max_frame_bytes
         self.session_timeout_s = session_timeout_s
         self._scenarios: dict[str, ScenarioInfo] = {s.name: s for s in backend.scenarios()}
-        self._welcome = encode(
-            Welcome(
-                protocol=PROTOCOL_VERSION,
-                server=f"sim_server {__version__}",
-                backend=backend.name,
-                backend_version=backend.version,
-                scenarios=tuple(self._scenarios.values()),
-                observation_fields=OBSERVATION_FIELDS,
-                action=backend.action_schema,
-                sensor_range=backend.sensor_range,
-                max_frame_bytes=max_frame_bytes,
-            )
+        ours = Welcome(
+            protocol=PROTOCOL_VERSION,
+            server=f"sim_server {__version__}",
+            backend=backend.name,
+            backend_version=backend.version,
+            scenarios=tuple(self._scenarios.values()),
+            observation_fields=OBSERVATION_FIELDS,
+            action=backend.action_schema,
+            sensor_range=backend.sensor_range,
+            max_frame_bytes=max_frame_bytes,
         )
+        self._welcome = encode(backend.welcome(ours))
         self.owner: bytes | None = None
         self.owner_connected = False
         self._last_seen = 0.0
@@ -168,7 +167,7 @@ class Session:
                 ErrorCode.UNKNOWN_SCENARIO,
                 f"unknown scenario {reset.scenario[:64]!r}; offered: {', '.join(self._scenarios)}",
             )
-        options = _merge_options(info, reset.options)
+        options = merge_options(info, reset.options)
         seed = reset.seed if reset.seed is not None else secrets.randbelow(2**31)
         if not 0 <= seed < 2**31:
             raise ProtocolError(ErrorCode.INVALID_NUMBER, f"seed {seed} is outside 0..2^31-1")
@@ -216,24 +215,3 @@ def _printable(text: str, limit: int = 64) -> str:
     """A client-chosen name made safe for one log line."""
     cleaned = "".join(c if c.isprintable() else "?" for c in text[:limit])
     return cleaned + ("..." if len(text) > limit else "")
-
-
-def _merge_options(info: ScenarioInfo, given: dict[str, OptionValue]) -> dict[str, OptionValue]:
-    """Scenario defaults overridden by the client's options, with names and types checked."""
-    merged = dict(info.options)
-    for name, value in given.items():
-        if name not in merged:
-            raise ProtocolError(
-                ErrorCode.INVALID_OPTION,
-                f"scenario {info.name} has no option {name[:64]!r}; options: {', '.join(merged)}",
-            )
-        default = merged[name]
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if default is not None and type(value) is not type(default):
-            raise ProtocolError(
-                ErrorCode.INVALID_OPTION,
-                f"option {name} must be {type(default).__name__}, got {type(value).__name__}",
-            )
-        merged[name] = value
-    return merged

@@ -18,6 +18,7 @@ PROTOCOL = {
     "protocol.codec",
     "protocol.schema",
     "protocol.version",
+    "protocol.recording",
     "protocol.transport",
 }
 MAY_IMPORT: dict[str, set[str]] = {
@@ -28,7 +29,12 @@ MAY_IMPORT: dict[str, set[str]] = {
     "agent_client.drivers": BASE | PROTOCOL | {"agent_client.envs", "agent_client.rl"},
     "agent_client.evaluation": BASE | PROTOCOL | {"agent_client.envs", "agent_client.drivers"},
     "agent_client.conformance": BASE | PROTOCOL | {"agent_client.transport"},
-    "sim_server.backends": {"sim_server.errors", "protocol.messages", "protocol.errors"},
+    "sim_server.backends": {
+        "sim_server.errors",
+        "protocol.messages",
+        "protocol.errors",
+        "protocol.recording",  # the replay backend reads recordings through protocol/ only
+    },
     "sim_server.session": {"sim_server.backends", "sim_server.errors", *PROTOCOL},
     "sim_server.serve": {"sim_server.session", "sim_server.backends", *PROTOCOL},
 }

@@ -6,13 +6,16 @@ import argparse
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from agent_client.defaults import STEP_TIMEOUT_S
 from agent_client.errors import UsageError
 from protocol.messages import OptionValue
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 from protocol.transport.security import CLIENT_SECRET_ENV, SERVER_KEY_ENV, ClientCredentials
+
+if TYPE_CHECKING:
+    from agent_client.transport.recording import WireRecorder
 
 Commands = Any
 """The sub-parsers action of argparse (its type is private)."""
@@ -104,3 +107,45 @@ def existing_folder(path: Path, flag: str) -> Path:
     if not path.is_dir():
         raise UsageError(f"{flag} {path}: no such folder")
     return path
+
+
+def add_record_argument(parser: argparse.ArgumentParser) -> None:
+    """--record DIR: keep the whole wire stream of the command's episodes (docs/recording.md)."""
+    parser.add_argument(
+        "--record",
+        type=Path,
+        metavar="DIR",
+        help="record every frame sent and received into the new or empty folder DIR "
+        "(docs/recording.md); `sim-server --backend replay --recording DIR` serves it back",
+    )
+
+
+def check_record_folder(path: Path | None) -> None:
+    """Refuse a --record folder that cannot take a new recording, naming it (`UsageError`)."""
+    if path is None:
+        return
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"--record {path}: not a folder")
+    if path.is_dir() and any(path.iterdir()):
+        raise UsageError(f"--record {path}: the folder is not empty; give a new or empty folder")
+    # a new folder is made with its missing parents: the nearest existing one must take it
+    where = path if path.is_dir() else next(p for p in path.absolute().parents if p.exists())
+    if not where.is_dir() or not os.access(where, os.W_OK | os.X_OK):
+        raise UsageError(f"--record {path}: cannot write in {where}")
+
+
+def open_recorder(args: argparse.Namespace, **about: Any) -> WireRecorder | None:
+    """The `WireRecorder` of --record (None without it), its manifest saying what the command
+    records (`about`: scenario, options, seeds, drivers) and who records it."""
+    if args.record is None:
+        return None
+    from agent_client import __version__
+    from agent_client.transport.recording import WireRecorder
+
+    return WireRecorder(
+        args.record,
+        command=args.command,
+        client=f"agent_client {__version__}",
+        server=args.server,
+        **about,
+    )

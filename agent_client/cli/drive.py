@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 
-from agent_client.cli.common import Commands, add_connection_arguments, check_reward
+from agent_client.cli.common import (
+    Commands,
+    add_connection_arguments,
+    add_record_argument,
+    check_record_folder,
+    check_reward,
+    open_recorder,
+)
 from agent_client.defaults import DEFAULT_SCENARIO
 
 
@@ -25,6 +32,7 @@ def add_parser(commands: Commands) -> None:
     drive.add_argument(
         "--reward", default="safe", help="reward reported per episode (default safe)"
     )
+    add_record_argument(drive)
     drive.set_defaults(run=run)
 
 
@@ -35,28 +43,40 @@ def run(args: argparse.Namespace) -> int:
     from agent_client.evaluation.metrics import aggregate, episode_summary, format_summary
 
     check_reward(args.reward)
+    check_record_folder(args.record)
     driver = load_driver(args.policy)
     trained_scenario, trained_options = training_settings(args.policy)
     scenario = args.scenario or trained_scenario or DEFAULT_SCENARIO
     if scenario != trained_scenario:
         trained_options = {}
-    env = RemoteEnv(
-        args.server,
-        scenario,
-        reward=args.reward,
-        timeout_s=args.timeout,
-        **{**trained_options, **dict(args.option)},
+    options = {**trained_options, **dict(args.option)}
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    wire = open_recorder(
+        args, scenario=scenario, options=options, seeds=seeds, drivers={"policy": args.policy}
     )
     summaries = []
     try:
-        for recorder in drive(env, driver, args.episodes, args.seed):
-            summary = episode_summary(recorder)
-            summaries.append(summary)
-            print(
-                json.dumps(summary.to_dict()) if args.json else format_summary(summary), flush=True
-            )
+        env = RemoteEnv(
+            args.server,
+            scenario,
+            reward=args.reward,
+            timeout_s=args.timeout,
+            recorder=wire,
+            **options,
+        )
+        try:
+            for episode in drive(env, driver, args.episodes, args.seed):
+                summary = episode_summary(episode)
+                summaries.append(summary)
+                print(
+                    json.dumps(summary.to_dict()) if args.json else format_summary(summary),
+                    flush=True,
+                )
+        finally:
+            env.close()
     finally:
-        env.close()
+        if wire is not None:
+            wire.close()
     if not args.json:
         totals = aggregate(summaries)
         print(

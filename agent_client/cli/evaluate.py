@@ -11,7 +11,14 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from agent_client.cli.common import Commands, add_connection_arguments, existing_folder
+from agent_client.cli.common import (
+    Commands,
+    add_connection_arguments,
+    add_record_argument,
+    check_record_folder,
+    existing_folder,
+    open_recorder,
+)
 from agent_client.defaults import DEFAULT_SCENARIO, EVALUATION_SEED
 
 
@@ -52,6 +59,7 @@ def add_parser(commands: Commands) -> None:
     evaluate.add_argument(
         "--table2-bins", type=int, default=10, help="ranges of training episodes (default 10)"
     )
+    add_record_argument(evaluate)
     evaluate.set_defaults(run=run)
 
 
@@ -99,16 +107,22 @@ def run(args: argparse.Namespace) -> int:
     specs = {"policy": args.policy, "baseline": args.baseline}
     if args.cf_policy is not None:
         specs["cf_policy"] = args.cf_policy
+    check_record_folder(args.record)
     drivers = {role: load_driver(spec) for role, spec in specs.items()}
     training_rows = None
     if args.run_folder is not None:
         training_rows = read_rows(existing_folder(args.run_folder, "--run") / EPISODE_CSV)
-    env = RemoteEnv(args.server, scenario, timeout_s=args.timeout, **options)
+    wire = open_recorder(args, scenario=scenario, options=options, seeds=seeds, drivers=specs)
     try:
-        runs = _drive_all(env, drivers, specs, seeds)
-        welcome, options = env.welcome, dict(env.options)
+        env = RemoteEnv(args.server, scenario, timeout_s=args.timeout, recorder=wire, **options)
+        try:
+            runs = _drive_all(env, drivers, specs, seeds)
+            welcome, options = env.welcome, dict(env.options)
+        finally:
+            env.close()
     finally:
-        env.close()
+        if wire is not None:
+            wire.close()
     evaluation = _evaluation(args, scenario, seeds, options, welcome, runs, out, training_rows)
     path = write_report(out, evaluation)
     _print_comparison(json.loads((out / "metrics.json").read_text()))

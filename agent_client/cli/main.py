@@ -10,11 +10,11 @@ import argparse
 import sys
 
 from agent_client import __version__
-from agent_client.cli import calibrate, check, drive, evaluate, report, train
+from agent_client.cli import calibrate, check, drive, evaluate, export, report, train
 from agent_client.cli.common import add_key_arguments, use_keys
 from agent_client.errors import BridgeError
 
-COMMANDS = (drive, train, calibrate, evaluate, report, check)
+COMMANDS = (drive, train, calibrate, evaluate, report, check, export)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -42,6 +42,7 @@ from agent_client.errors import (
 )
 from agent_client.transport import connect
 from agent_client.transport.channel import Channel
+from agent_client.transport.recording import WireRecorder
 from agent_client.transport.replies import ReplyChecker, check_welcome
 from protocol.messages import Close, Error, Observation, OptionValue, Reset, Step, Welcome
 from protocol.schema import Flattener
@@ -78,6 +79,7 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         credentials: ClientCredentials | None = None,
         action_space: str = "auto",
         acceleration_levels: int = DEFAULT_ACCELERATION_LEVELS,
+        recorder: WireRecorder | None = None,
         **options: OptionValue,
     ) -> None:
         """Connect and shake hands; `options` are scenario options sent with every reset.
@@ -85,6 +87,7 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         `credentials` (CURVE keys) default to $AV_BRIDGE_SERVER_KEY / $AV_BRIDGE_SECRET_KEY.
         `action_space` is one of `agent_client.envs.spaces.ACTION_SPACES`;
         `acceleration_levels` the number of accelerations of the discrete encodings.
+        `recorder` records the whole wire stream, the hello included (docs/recording.md).
         """
         if action_space not in ACTION_SPACES:
             raise UsageError(
@@ -99,7 +102,8 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         self.reward_fn = _resolve_reward(reward)
         self.timeout_s = timeout_s
         self._credentials = credentials
-        self._connection: Channel = connect(address, timeout_s, credentials)
+        self._recorder = recorder
+        self._connection: Channel = self._connect()
         try:
             self.welcome: Welcome = self._connection.hello(timeout_s)
             self.scenario_options = self._check_scenario()
@@ -210,7 +214,7 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         if self._connection is not None:
             self._connection.close()
         self._done, self._last = True, None
-        self._connection = connect(self.address, self.timeout_s, self._credentials)
+        self._connection = self._connect()
         while True:
             remaining = deadline - time.monotonic()
             try:
@@ -242,6 +246,13 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         self._connection = None  # type: ignore[assignment]
 
     # ----------------------------------------------------------------------- helpers
+
+    def _connect(self) -> Channel:
+        """A fresh channel to the server, recorded from its first frame if asked."""
+        channel = connect(self.address, self.timeout_s, self._credentials)
+        if self._recorder is not None:
+            self._recorder.tap(channel)
+        return channel
 
     def _check_scenario(self) -> dict[str, OptionValue]:
         """The scenario's full options. Refuses early: an unknown scenario or option

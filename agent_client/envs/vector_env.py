@@ -66,6 +66,7 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
                         credentials=credentials,
                         action_space=action_space,
                         acceleration_levels=acceleration_levels,
+                        recorder=None,
                         **options,
                     )
                 )

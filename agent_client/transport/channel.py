@@ -7,7 +7,7 @@ typed helpers are here, once, for every transport and for the conformance kit.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Self
+from typing import Protocol, Self
 
 from agent_client.errors import InvalidReply, ServerError
 from protocol.codec import decode_reply, encode
@@ -16,6 +16,15 @@ from protocol.messages import Error, Hello, Reply, Request, Welcome
 from protocol.version import PROTOCOL_VERSION
 
 CLIENT_NAME = "agent_client"
+
+
+class FrameTap(Protocol):
+    """Sees every frame a channel sends and receives, in order (a recording's stream,
+    `protocol.recording.StreamWriter`)."""
+
+    def request(self, frame: bytes) -> None: ...
+
+    def reply(self, frame: bytes) -> None: ...
 
 
 class Channel(ABC):
@@ -30,6 +39,9 @@ class Channel(ABC):
     sent: Request | None = None
     """The request in flight, or the last one answered (None after `send_raw`): what a reply
     is checked against (`agent_client.transport.replies`)."""
+    tap: FrameTap | None = None
+    """What records this channel's frames (`agent_client.transport.recording`), or None: then
+    recording costs one attribute test per frame."""
 
     @abstractmethod
     def send_raw(self, frame: bytes) -> None:
@@ -59,17 +71,26 @@ class Channel(ABC):
     def exchange_raw(self, frame: bytes, timeout_s: float | None = None) -> Reply:
         """Send an already encoded frame and return the decoded reply."""
         self.sent = None
-        self.send_raw(frame)
+        self._send_frame(frame)
         return self.receive(timeout_s)
 
     def send(self, message: Request) -> None:
         """First half of `request`: send, so that several servers can work at once."""
         self.sent = message
-        self.send_raw(encode(message))
+        self._send_frame(encode(message))
+
+    def _send_frame(self, frame: bytes) -> None:
+        """`send_raw`, then show the frame to the tap (a frame that failed to go is not shown)."""
+        self.send_raw(frame)
+        if self.tap is not None:
+            self.tap.request(frame)
 
     def receive(self, timeout_s: float | None = None) -> Reply:
-        """Second half of `request`: the decoded reply to what `send` sent."""
+        """Second half of `request`: the decoded reply to what `send` sent (the tap sees its
+        frame before it is checked, so a malformed reply is recorded too)."""
         frame = self.receive_frame(timeout_s)
+        if self.tap is not None:
+            self.tap.reply(frame)
         try:
             return decode_reply(frame)  # type: ignore[return-value]
         except ProtocolError as exc:

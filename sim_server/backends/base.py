@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
-from protocol.messages import ActionSchema, Observation, OptionValue, ScenarioInfo
+from protocol.messages import ActionSchema, Observation, OptionValue, ScenarioInfo, Welcome
 from sim_server.errors import BackendError
 
 __all__ = ["DEFAULT_ACTION_SCHEMA", "DEFAULT_SENSOR_RANGE", "Backend", "BackendError"]
@@ -54,3 +54,8 @@ class Backend(ABC):
     @abstractmethod
     def close(self) -> None:
         """Release the simulator."""
+
+    def welcome(self, ours: Welcome) -> Welcome:
+        """The welcome the server announces: `ours`, built from the attributes above (a backend
+        that replays a recording announces the recorded one)."""
+        return ours

@@ -12,8 +12,8 @@ from collections.abc import Mapping
 from dataclasses import Field, dataclass, fields
 from typing import Any, ClassVar, Self, TypeVar
 
-from protocol.errors import ErrorCode
-from protocol.messages import OptionValue
+from protocol.errors import ErrorCode, ProtocolError
+from protocol.messages import OptionValue, ScenarioInfo
 from sim_server.errors import BackendError
 
 
@@ -191,3 +191,27 @@ COMMON_OPTIONS = EpisodeOptions().as_options()
 """The announced defaults of the options every scenario accepts (copy before changing)."""
 TRAFFIC_OPTIONS = TrafficOptions().as_options()
 """The announced defaults of the built-in roads' traffic options (copy before changing)."""
+
+
+def merge_options(info: ScenarioInfo, given: dict[str, OptionValue]) -> dict[str, OptionValue]:
+    """Scenario defaults overridden by the client's options, with names and types checked.
+
+    The session merges every reset's options so (a backend receives the result); a fault is a
+    `ProtocolError` with ``invalid_option``."""
+    merged = dict(info.options)
+    for name, value in given.items():
+        if name not in merged:
+            raise ProtocolError(
+                ErrorCode.INVALID_OPTION,
+                f"scenario {info.name} has no option {name[:64]!r}; options: {', '.join(merged)}",
+            )
+        default = merged[name]
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if default is not None and type(value) is not type(default):
+            raise ProtocolError(
+                ErrorCode.INVALID_OPTION,
+                f"option {name} must be {type(default).__name__}, got {type(value).__name__}",
+            )
+        merged[name] = value
+    return merged

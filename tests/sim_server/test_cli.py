@@ -44,6 +44,12 @@ def refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
         ([*LOOPBACK, "--backend", "sumo-traci", "--traci-port", "0"], ["--traci-port 0"]),
         ([*LOOPBACK, "--sumocfg", "/no/such.sumocfg"], ["--sumocfg /no/such.sumocfg: no such"]),
         ([*LOOPBACK, "--ego-route", "r0"], ["--ego-route r0", "--sumocfg"]),
+        ([*LOOPBACK, "--backend", "replay"], ["--backend replay needs --recording DIR"]),
+        ([*LOOPBACK, "--recording", "/no/such"], ["--recording needs --backend replay", "sumo"]),
+        (
+            [*LOOPBACK, "--backend", "replay", "--recording", "/no/such/rec"],
+            ["--recording /no/such/rec: no such folder"],
+        ),
         ([*LOOPBACK, "--workers", "0"], ["--workers 0"]),
         (["--bind", "tcp://127.0.0.1:65535", "--workers", "2"], ["--workers 2", "65535"]),
         ([*LOOPBACK, "--spin-us", "10"], ["--spin-us", "--bind tcp://127.0.0.1:0"]),
@@ -76,6 +82,19 @@ def test_a_sumocfg_needs_a_sumo_backend_and_an_ego_route(
     assert "--sumocfg needs a SUMO backend" in line and "fake" in line
     line = refused([*LOOPBACK, "--sumocfg", str(config)], capsys)
     assert "--ego-route" in line
+
+
+def test_a_folder_without_a_recording_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    line = refused([*LOOPBACK, "--backend", "replay", "--recording", str(tmp_path)], capsys)
+    assert f"--recording {tmp_path}: holds no recording (no manifest.json)" in line
+    (tmp_path / "manifest.json").write_text(
+        '{"format": "av-bridge-recording", "format_version": 1, "complete": true}'
+    )
+    (tmp_path / "session-000.avbr").write_bytes(b"AVBREC\x00\x01\x3e\xff")
+    line = refused([*LOOPBACK, "--backend", "replay", "--recording", str(tmp_path)], capsys)
+    assert "session-000.avbr: truncated record header" in line
 
 
 @pytest.mark.parametrize(
