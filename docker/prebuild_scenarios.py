@@ -1,7 +1,7 @@
 """Build the built-in SUMO scenarios (netconvert) into the scenario cache.
 
-Run at image build time so that a container's first reset of ``cf`` or ``cflc`` with default
-traffic options reuses these files instead of running netconvert. Other traffic options
+Run at image build time so that a container's first reset of ``cf``, ``cflc`` or ``ring`` with
+default options reuses these files instead of running netconvert. Other traffic options
 (``--option flow=...``) still build their own folder on first use, as outside a container.
 
 Usage: python prebuild_scenarios.py [CACHE_DIR]   (default: the server's own default cache)
@@ -12,13 +12,13 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from sim_server.backends.sumo.scenarios import BUILTIN_SCENARIOS, build_road, default_cache_dir
+from sim_server.backends.sumo.scenarios import BUILTIN_SCENARIOS, default_cache_dir
 
 
 def main(argv: list[str]) -> int:
     cache_dir = Path(argv[0]) if argv else default_cache_dir()
     for scenario in BUILTIN_SCENARIOS.values():
-        config = build_road(scenario, dict(scenario.info().options), cache_dir)
+        config = scenario.build(dict(scenario.info().options), cache_dir)
         print(f"prebuilt {scenario.name}: {config}")
     return 0
 

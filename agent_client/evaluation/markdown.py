@@ -145,8 +145,16 @@ def _cf_rows(drivers: list[Figures], paper: dict[str, Any]) -> list[list[str]]:
 
 
 def _ceiling_note(metrics: dict[str, Any]) -> str:
-    """What the leader-at-entry ceiling means here: a bound on one lane, a reference on more."""
-    ceiling = _ratio_gain(metrics["comparison"]["ceiling_over_baseline"])
+    """What the leader-at-entry ceiling means here: a bound on one lane, a reference on more,
+    or nothing where the server reported none (on a ring nobody arrives)."""
+    ratio = metrics["comparison"]["ceiling_over_baseline"]
+    if ratio is None:
+        return (
+            "**The ceiling.** The server reported no leader-at-entry trip (a scenario without "
+            "arrivals, such as the ring, or `report_ceiling` off): compare the speeds with the "
+            "baseline's only."
+        )
+    ceiling = _ratio_gain(ratio)
     if metrics["multi_lane"]:
         return (
             "The ceiling is the average speed the ego would have had arriving together with the "

@@ -26,7 +26,7 @@ def assert_free(address: str) -> None:
 
 @pytest.mark.sumo
 def test_the_sumo_server_conforms(sumo_server: RunningServer) -> None:
-    for scenario in ("cf", "cflc"):
+    for scenario in ("cf", "cflc", "ring"):
         report = run_checks(sumo_server.address, scenario, timeout_s=30.0)
         assert {r.name: r.status for r in report.results} == dict.fromkeys(CHECKS, PASS), (
             report.format_table()

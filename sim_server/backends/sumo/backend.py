@@ -11,6 +11,9 @@ keeps its gap check on requested ones (a refused change is the paper's state G).
 clipped to the announced bounds and to the road's speed limit here, because speed mode 32 would
 obey anything. Collisions are real overlaps (``collision.mingap-factor 0``) and are checked before
 arrival, so a crash at the end of the road is still a crash.
+
+On the ``ring`` every vehicle is placed at reset: the ego is one of the human drivers during the
+warm-up and is handed to the client (its type switched to the ego's) when the warm-up ends.
 """
 
 from __future__ import annotations
@@ -52,8 +55,11 @@ from sim_server.backends.sumo.scenarios import (
     EGO_TYPE,
     HUMAN_TYPE,
     CustomScenario,
+    RingOptions,
+    RingScenario,
     RoadScenario,
     Scenario,
+    build_ring,
     build_road,
     default_cache_dir,
 )
@@ -95,6 +101,9 @@ class _Episode:
     sumo_drives: bool = False
     one_way: bool = False
     """A built-in road: no lane beyond its edge's outer lanes (no opposite-direction lanes)."""
+    curved: bool = False
+    """The ring: one curved lane, where an offset across the ego's heading would be the
+    curvature's; neighbours' `lateral` is 0 there."""
     lane_change: LaneChangeUnderWay | None = None
     done: bool = False
     last: Observation | None = None
@@ -169,10 +178,13 @@ class SumoBackend(Backend):
         chosen = self._scenarios[scenario]
         episode_options = EpisodeOptions.parse(options)
         traffic = TrafficOptions.parse(options) if isinstance(chosen, RoadScenario) else None
+        layout = RingOptions.parse(options) if isinstance(chosen, RingScenario) else None
         self._episode = None
         try:
-            config, route = self._files(chosen, traffic)
+            config, route = self._files(chosen, traffic or layout)
             self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS])
+            if layout is not None:
+                return self._place_ego(layout, episode_options)
             return self._insert_ego(route, episode_options, one_way=traffic is not None)
         except self._errors as exc:
             self._broken(exc)
@@ -180,16 +192,23 @@ class SumoBackend(Backend):
                 ErrorCode.SIMULATOR_ERROR, f"SUMO failed during reset: {exc}"
             ) from exc
 
-    def _files(self, scenario: Scenario, traffic: TrafficOptions | None) -> tuple[Path, str]:
-        if isinstance(scenario, RoadScenario):
-            assert traffic is not None
-            try:
-                return build_road(scenario, traffic, self._cache_dir), EGO_ROUTE
-            except (OSError, RuntimeError) as exc:
-                raise BackendError(
-                    ErrorCode.SIMULATOR_ERROR, f"could not build scenario {scenario.name}: {exc}"
-                ) from exc
-        return scenario.sumocfg, scenario.ego_route
+    def _files(
+        self, scenario: Scenario, parsed: TrafficOptions | RingOptions | None
+    ) -> tuple[Path, str]:
+        """The scenario's .sumocfg (a built-in one built from its `parsed` options) and the
+        ego's route (the ring's ego is placed by `_place_ego` instead)."""
+        if isinstance(scenario, CustomScenario):
+            return scenario.sumocfg, scenario.ego_route
+        try:
+            if isinstance(scenario, RingScenario):
+                assert isinstance(parsed, RingOptions)
+                return build_ring(scenario, parsed, self._cache_dir), ""
+            assert isinstance(parsed, TrafficOptions)
+            return build_road(scenario, parsed, self._cache_dir), EGO_ROUTE
+        except (OSError, RuntimeError) as exc:
+            raise BackendError(
+                ErrorCode.SIMULATOR_ERROR, f"could not build scenario {scenario.name}: {exc}"
+            ) from exc
 
     def _load(self, args: list[str]) -> None:
         if self._running and (self._loads < self._restart_every or not self._sumo.restarts):
@@ -229,6 +248,50 @@ class SumoBackend(Backend):
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
         return self._observe(self._episode, 0, Events(), action)
+
+    def _place_ego(self, layout: RingOptions, options: EpisodeOptions) -> Observation:
+        """The ring: the ego joins the humans in slot 0, drives as one of them through the
+        warm-up, and is handed over at its end (seq 0)."""
+        api = self._api
+        dt = api.simulation.getDeltaT()
+        substeps = options.steps_per_decision(dt)
+        route, position = layout.slot(0)
+        api.vehicle.add(
+            EGO_ID, route, typeID=HUMAN_TYPE, depart="now",
+            departLane="0", departPos=f"{position:.3f}", departSpeed="0",
+        )  # fmt: skip
+        api.simulationStep()  # everyone enters in this first step, or the ring is refused
+        self._check_ring_entry(layout.vehicles)
+        api.simulationStep(max(options.warmup, api.simulation.getTime()))
+        if not options.simulator_drives:
+            api.vehicle.setType(EGO_ID, EGO_TYPE)
+            api.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
+            api.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
+        self._episode = _Episode(
+            dt=dt,
+            substeps=substeps,
+            options=options,
+            end=EndRule(options, entry_time=api.simulation.getTime()),
+            entry_offset=layout.ring_position(0),
+            route_length=layout.laps() * layout.ring_length,
+            leader_id="",  # nobody arrives on a ring: no leader-at-entry trip (ceiling nil)
+            leader_depart=math.nan,
+            sumo_drives=options.simulator_drives,
+            one_way=True,
+            curved=True,
+            ego_min_gap=api.vehicle.getMinGap(EGO_ID),
+        )
+        action = AppliedAction(0.0, 0, 0.0, 0)
+        return self._observe(self._episode, 0, Events(), action)
+
+    def _check_ring_entry(self, vehicles: int) -> None:
+        """Every vehicle of the ring entered in the first step (placed, so they must)."""
+        entered = self._api.simulation.getDepartedIDList()
+        if EGO_ID not in entered or len(entered) != vehicles:
+            raise BackendError(
+                ErrorCode.INSERTION_FAILED,
+                f"only {len(entered)} of the ring's {vehicles} vehicles could be placed",
+            )
 
     def _add_ego(self, route: str, sumo_drives: bool) -> None:
         """Ask SUMO to insert the ego now: the client's (SUMO's checks off) or a human."""
@@ -486,9 +549,7 @@ class SumoBackend(Backend):
             speed_limit=self._api.lane.getMaxSpeed(lane_id),
             changing_lane=0 if episode.lane_change is None else episode.lane_change.direction,
         )
-        x, y = vehicle.getPosition(EGO_ID)
-        heading = math.radians(vehicle.getAngle(EGO_ID))
-        frame = (x, y, -math.cos(heading), math.sin(heading))
+        frame = None if episode.curved else self._frame()
         ego_min_gap = episode.ego_min_gap
         sensed = self.sensor_range
         leader = vehicle.getLeader(EGO_ID, sensed)
@@ -528,17 +589,24 @@ class SumoBackend(Backend):
         episode.last = obs
         return obs
 
+    def _frame(self) -> tuple[float, float, float, float]:
+        """The ego's position and the unit normal to the left of its heading."""
+        x, y = self._api.vehicle.getPosition(EGO_ID)
+        heading = math.radians(self._api.vehicle.getAngle(EGO_ID))
+        return (x, y, -math.cos(heading), math.sin(heading))
+
     def _nearest(
         self,
         episode: _Episode,
         found: Any,
         ego_min_gap: float | None,
-        frame: tuple[float, float, float, float],
+        frame: tuple[float, float, float, float] | None,
     ) -> Neighbour:
         """The closest of (id, distance) pairs as a Neighbour with the net bumper gap.
 
         SUMO's leader distance excludes the ego's minGap, its follower distance the follower's:
-        `ego_min_gap` is given for leaders, None for followers.
+        `ego_min_gap` is given for leaders, None for followers. Its lateral offset is measured
+        across the ego's heading (`frame`), or 0 without a frame (one curved lane).
         """
         api = self._api
         if not found:
@@ -553,9 +621,11 @@ class SumoBackend(Backend):
             gap = distance + ego_min_gap
         if gap > self.sensor_range:
             return self._absent
-        x, y, normal_x, normal_y = frame
-        other_x, other_y = api.vehicle.getPosition(other)
-        lateral = (other_x - x) * normal_x + (other_y - y) * normal_y
+        lateral = 0.0
+        if frame is not None:
+            x, y, normal_x, normal_y = frame
+            other_x, other_y = api.vehicle.getPosition(other)
+            lateral = (other_x - x) * normal_x + (other_y - y) * normal_y
         return Neighbour(True, gap, lateral, api.vehicle.getSpeed(other), other)
 
     def _arrival_observation(

@@ -242,6 +242,17 @@ def test_report_on_one_lane_says_lane_changing_does_not_apply(tmp_path: Path) ->
     assert metrics["comparison"]["ceiling_over_baseline"] == pytest.approx(1.02)
 
 
+def test_report_without_any_ceiling_says_so(tmp_path: Path) -> None:
+    """A ring reports no leader-at-entry trip: the report says so instead of "n/a over"."""
+    evaluation = synthetic_evaluation(lanes=1)
+    for run in (evaluation.policy, evaluation.baseline):
+        for record in run.records:
+            record.summary.ceiling_speed = record.summary.speed_ratio_to_ceiling = None
+    text = write_report(tmp_path, evaluation).read_text()
+    assert "reported no leader-at-entry trip" in text and "n/a over the baseline" not in text
+    assert strict_json(tmp_path / "metrics.json")["comparison"]["ceiling_over_baseline"] is None
+
+
 def test_summarise_refuses_no_episodes() -> None:
     with pytest.raises(ValueError, match="no episodes"):
         summarise([])
