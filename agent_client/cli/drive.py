@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 from agent_client.cli.common import (
     Commands,
@@ -79,10 +80,14 @@ def run(args: argparse.Namespace) -> int:
             wire.close()
     if not args.json:
         totals = aggregate(summaries)
+        ratio = totals["speed_ratio_to_ceiling"]
+        ceiling = (
+            f"{ratio:.3f}x the leader-at-entry ceiling" if math.isfinite(ratio) else "no ceiling"
+        )
         print(
             f"{args.policy} on {scenario}: {len(summaries)} episodes | "
             f"avg speed {totals['average_speed']:.2f} m/s (sd {totals['average_speed_sd']:.2f}), "
-            f"{totals['speed_ratio_to_ceiling']:.3f}x the leader-at-entry ceiling | "
+            f"{ceiling} | "
             f"collisions/episode {totals['collisions_per_episode']:.2f} | "
             f"jerk>5.6 {100 * totals['jerk_share_above_limit']:.2f}% | "
             f"headway<1s {100 * totals['headway_share_below_1s']:.2f}%"

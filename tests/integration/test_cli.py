@@ -42,6 +42,17 @@ def test_agent_client_drive_human_summary(sumo_server: RunningServer) -> None:
     assert "avg speed" in result.stdout and "collisions/episode" in result.stdout
 
 
+def test_drive_on_the_ring_says_it_has_no_ceiling(sumo_server: RunningServer) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", sumo_server.address,
+         "--scenario", "ring", "--episodes", "1", "--option", "max_episode_time=5"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    totals = result.stdout.strip().splitlines()[-1]
+    assert "idm on ring" in totals and "no ceiling" in totals and "nan" not in totals
+
+
 def test_agent_client_reports_an_unreachable_server_clearly() -> None:
     result = subprocess.run(
         [sys.executable, "-m", "agent_client.cli.main", "drive", "--server", "tcp://127.0.0.1:1",
