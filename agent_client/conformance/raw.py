@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import socket
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import zmq
@@ -102,31 +103,15 @@ class RawPeer:
 
     def _read(self, sock: socket.socket, deadline: float, want: int) -> list[bytes]:
         frames: list[bytes] = []
-        while len(frames) < want and (left := deadline - time.monotonic()) > 0:
-            sock.settimeout(left)
-            try:
-                data = sock.recv(1 << 16)
-            except TimeoutError:
-                break
-            if not data:
-                break
+        for data in _chunks(sock, deadline):
             frames += self._reader.feed(data)
+            if len(frames) >= want:
+                break
         return frames
 
     def _drain(self, sock: socket.socket, settle_s: float) -> int:
         """Bytes that arrive within `settle_s` when nothing was asked."""
-        extra = 0
-        deadline = time.monotonic() + settle_s
-        while (left := deadline - time.monotonic()) > 0:
-            sock.settimeout(left)
-            try:
-                data = sock.recv(1 << 16)
-            except TimeoutError:
-                break
-            if not data:
-                break
-            extra += len(data)
-        return extra
+        return sum(len(data) for data in _chunks(sock, time.monotonic() + settle_s))
 
     def close(self) -> None:
         if self._socket is not None:
@@ -135,3 +120,16 @@ class RawPeer:
             self._context.term()
         if self._sock is not None:
             self._sock.close()
+
+
+def _chunks(sock: socket.socket, deadline: float) -> Iterator[bytes]:
+    """What arrives on `sock` until `deadline` or until the peer closes."""
+    while (left := deadline - time.monotonic()) > 0:
+        sock.settimeout(left)
+        try:
+            data = sock.recv(1 << 16)
+        except TimeoutError:
+            return
+        if not data:
+            return
+        yield data

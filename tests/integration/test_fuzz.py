@@ -56,6 +56,7 @@ from protocol.messages import (
 from protocol.schema import OBSERVATION_FIELDS
 from protocol.transport.zeromq import SOCKET_MAX_BYTES
 from protocol.version import PROTOCOL_VERSION
+from tests.agent_client.conformance.toys import zero_reward
 from tests.conftest import RunningServer, sim_server
 
 REPLY_TIMEOUT_MS = 10_000
@@ -773,10 +774,6 @@ def evil_reply(draw: st.DrawFn, template: bytes) -> list[bytes] | None:
     if kind == "ext":
         return [msgpack.packb(msgpack.ExtType(draw(st.integers(0, 127)), b"\x00"))]
     return [template]
-
-
-def zero_reward(prev: object, obs: object, elapsed: float) -> float:
-    return 0.0
 
 
 def call_client(target: str, evil: EvilServer, reply: list[bytes] | None) -> str:

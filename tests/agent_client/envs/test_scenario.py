@@ -27,13 +27,10 @@ from tests.agent_client.conformance.toys import (
     ToyServer,
     request_of,
     rewrite_wire,
+    zero_reward,
 )
 
 ACTION = {"acceleration": np.zeros(1, np.float32), "lane_change": 0}
-
-
-def zero_reward(prev: object, obs: object, elapsed: float) -> float:
-    return 0.0
 
 
 def env_at(address: str, **options: object) -> RemoteEnv:

@@ -11,7 +11,7 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.training.evaluator import EvaluationJob, Evaluator
 from protocol.messages import Observation
-from tests.agent_client.conformance.toys import ToyServer
+from tests.agent_client.conformance.toys import ToyServer, zero_reward
 from tests.agent_client.transport.servers import DirectToy
 
 SEEDS = [7, 3, 11, 5, 9]
@@ -22,10 +22,6 @@ class FullThrottle:
 
     def act(self, obs: Observation) -> tuple[float, int]:
         return 3.0, 0
-
-
-def zero_reward(prev: object, obs: object, elapsed: float) -> float:
-    return 0.0
 
 
 @pytest.fixture

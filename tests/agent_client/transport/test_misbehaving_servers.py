@@ -33,15 +33,12 @@ from tests.agent_client.conformance.toys import (
     AnswersTwice,
     DropsRequestId,
     ToyServer,
+    zero_reward,
 )
 from tests.agent_client.transport.servers import DirectToy, elapsed_since, wait_until
 
 ROOT = Path(__file__).resolve().parents[3]
 ACTION = {"acceleration": np.zeros(1, np.float32), "lane_change": 0}
-
-
-def zero_reward(prev: object, obs: object, elapsed: float) -> float:
-    return 0.0
 
 
 def env_at(address: str, timeout_s: float = 1.0) -> RemoteEnv:
