@@ -135,9 +135,12 @@ class SumoBackend(Backend):
         traci_port: int | None = None,
         traci_host: str = "localhost",
         sumo_binary: str | None = None,
+        view: Any = None,
     ) -> None:
         if not traci and (gui or traci_port is not None or sumo_binary is not None):
             raise ValueError("gui, traci_port and sumo_binary need traci=True")
+        if view is not None and not gui:
+            raise ValueError("a GUI view needs gui=True")
         if gui and traci_port is not None:
             raise ValueError("gui starts its own sumo-gui: it cannot attach to a port")
         if gui:
@@ -146,7 +149,7 @@ class SumoBackend(Backend):
         self._scenarios: dict[str, Scenario] = {**BUILTIN_SCENARIOS}
         for scenario in custom:
             self._scenarios[scenario.name] = scenario
-        over_traci = OverTraci(gui, traci_port, traci_host, sumo_binary) if traci else None
+        over_traci = OverTraci(gui, traci_port, traci_host, sumo_binary, view) if traci else None
         self._sumo: InProcess | OverTraci = over_traci or InProcess()
         self.name = self._sumo.name
         self._errors = self._sumo.errors
@@ -184,8 +187,11 @@ class SumoBackend(Backend):
             config, route = self._files(chosen, traffic or layout)
             self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS])
             if layout is not None:
-                return self._place_ego(layout, episode_options)
-            return self._insert_ego(route, episode_options, one_way=traffic is not None)
+                first = self._place_ego(layout, episode_options)
+            else:
+                first = self._insert_ego(route, episode_options, one_way=traffic is not None)
+            self._sumo.ego_ready(self._api, EGO_ID)
+            return first
         except self._errors as exc:
             self._broken(exc)
             raise BackendError(
@@ -356,6 +362,7 @@ class SumoBackend(Backend):
         if started:
             self._start_lane_change(episode, lane_change)
         action, events = self._drive(episode, request, lane_change, refused, started)
+        self._sumo.stepped(self._api, EGO_ID)
         return self._conclude(episode, seq, events, action)
 
     def _lane_change_refusal(self, episode: _Episode, direction: int) -> str:

@@ -47,6 +47,12 @@ class InProcess:
     def load(self, api: Any, args: list[str]) -> None:
         api.simulation.load(args)
 
+    def ego_ready(self, api: Any, ego_id: str) -> None:
+        """Called once the ego of a new episode is in the simulation (nothing to show here)."""
+
+    def stepped(self, api: Any, ego_id: str) -> None:
+        """Called after each decision's simulation steps (nothing to show here)."""
+
     def close(self, api: Any) -> None:
         api.close()
 
@@ -59,7 +65,9 @@ class OverTraci:
 
     name = "sumo-traci"
 
-    def __init__(self, gui: bool, port: int | None, host: str, binary: str | None) -> None:
+    def __init__(
+        self, gui: bool, port: int | None, host: str, binary: str | None, view: Any = None
+    ) -> None:
         import traci
         import traci.connection
 
@@ -79,6 +87,13 @@ class OverTraci:
         self._process: subprocess.Popen[bytes] | None = None
         self._log: IO[bytes] | None = None
         self._attached: Any = None
+        self.view = view
+
+    def ego_ready(self, api: Any, ego_id: str) -> None:
+        """Called once the ego of a new episode is in the simulation."""
+
+    def stepped(self, api: Any, ego_id: str) -> None:
+        """Called after each decision's simulation steps."""
 
     def attach(self) -> Any:
         """Connect to the SUMO at `port` now (it keeps running its own scenario until reset)."""
