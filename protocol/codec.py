@@ -545,10 +545,36 @@ def _range_check(cls: type) -> Callable[[Any], bool] | None:
                 return None
             env[f"k{i}"] = nested
             tests.append(f"((x := {value}) is None or k{i}(x))" if optional else f"k{i}({value})")
-        else:
+        elif not _array_check(kind, f"({value} or ())" if optional else value, i, env, tests):
             return None
     tests += [f"isfinite({' + '.join(floats)})", f"{' + '.join(lengths)} <= {_MAX_STRING}"]
     exec("def in_range(o):\n    return " + " and ".join(tests) + "\n", env)  # field names only
     in_range: Callable[[Any], bool] = env["in_range"]
     in_range.__qualname__ = f"in_range_{cls.__name__}"
     return in_range
+
+
+def _array_check(hint: Any, items: str, index: int, env: dict[str, Any], tests: list[str]) -> bool:
+    """Add to `tests` the range test of a ``tuple[X, ...]`` field (expression `items`): at most
+    `_MAX_ITEMS` items, each a finite float, an int64, a short string or a message of scalars;
+    False if `hint` is not such an array."""
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) is not tuple or len(args) != 2 or args[1] is not Ellipsis:
+        return False
+    item = args[0]
+    tests.append(f"len({items}) <= {_MAX_ITEMS}")
+    if item is float:
+        tests.append(f"isfinite(sum({items}))")
+    elif item is int:
+        tests.append(f"all({-_INT64} <= n < {_INT64} for n in {items})")
+    elif item is str:
+        tests.append(f"max(map(len, {items}), default=0) <= {_MAX_STRING}")
+    elif dataclasses.is_dataclass(item):
+        nested = _range_check(typing.cast(type, item))
+        if nested is None:
+            return False
+        env[f"a{index}"] = nested
+        tests.append(f"all(map(a{index}, {items}))")
+    elif item is not bool:
+        return False
+    return True

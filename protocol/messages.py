@@ -278,11 +278,74 @@ class LeaderTrip:
 
 
 @dataclass(frozen=True, slots=True)
+class Traffic:
+    """Every vehicle in the simulation but the ego, column by column (since protocol 1.3).
+
+    Index i of every column is one vehicle. `position` is the distance it has driven since it
+    entered (an odometer, m); `leader` its leader within the sensor range ("" when none; "ego"
+    is the ego), `gap` the net bumper-to-bumper gap to it (the sensor range when none) and
+    `leader_speed` its speed (0 when none). Sent only when the reset option ``report_traffic``
+    asks for it, on every observation; at most 1,024 vehicles.
+    """
+
+    id: tuple[str, ...]
+    vehicle_type: tuple[str, ...]
+    lane: tuple[int, ...]
+    position: tuple[float, ...]
+    speed: tuple[float, ...]
+    acceleration: tuple[float, ...]
+    leader: tuple[str, ...]
+    gap: tuple[float, ...]
+    leader_speed: tuple[float, ...]
+
+    def __len__(self) -> int:
+        return len(self.id)
+
+
+@dataclass(frozen=True, slots=True)
+class Conflict:
+    """One conflict of the ego that SUMO's SSM device logged (since protocol 1.3).
+
+    A conflict is an encounter with another vehicle in which a measure crossed its threshold
+    (`Safety`). `min_ttc` (s), `max_drac` (m/s^2) and `min_pet` (s) are its extremes, None where
+    the measure was never defined; `ttc_below` and `drac_beyond` the seconds it spent beyond the
+    TTC and DRAC thresholds, and `ttc_integral` the time-integrated TTC (s^2), the integral of
+    (threshold - TTC) over those seconds.
+    """
+
+    foe: str
+    begin: float
+    end: float
+    min_ttc: float | None
+    max_drac: float | None
+    min_pet: float | None
+    ttc_below: float
+    drac_beyond: float
+    ttc_integral: float
+
+
+@dataclass(frozen=True, slots=True)
+class Safety:
+    """The ego's surrogate safety measures over the episode, from the simulator (protocol 1.3).
+
+    Set on the last observation when the reset option ``ssm`` asks for it: every conflict, and
+    the thresholds that define one (TTC below `ttc_threshold` s, DRAC above `drac_threshold`
+    m/s^2, PET below `pet_threshold` s).
+    """
+
+    conflicts: tuple[Conflict, ...]
+    ttc_threshold: float
+    drac_threshold: float
+    pet_threshold: float
+
+
+@dataclass(frozen=True, slots=True)
 class Observation:
     """Recognition state of the ego after a reset (seq 0) or a step (the step's seq).
 
     `reason` says why an episode ended (an `EndReason`, a plain string on the wire), or is ""
-    while it runs. `ceiling` is set on the last observation of an episode.
+    while it runs. `ceiling` is set on the last observation of an episode, and so is `safety`
+    when asked for; `traffic` is on every observation when asked for (protocol 1.3).
     """
 
     TYPE: ClassVar[str] = "observation"
@@ -296,6 +359,8 @@ class Observation:
     truncated: bool = False
     reason: str = ""
     ceiling: LeaderTrip | None = None
+    safety: Safety | None = None
+    traffic: Traffic | None = None
 
 
 Request = Hello | Reset | Step | Close

@@ -9,6 +9,9 @@ Revision history:
          server socket is a ROUTER with handover; one error code for every malformed request
          (non-string keys, bin and ext values are `decode_error`); the state machine's and the
          observation's corner cases and the well-known options' types specified.
+    1.3  `observation.safety` (the simulator's surrogate safety measures of the episode, on its
+         last observation) and `observation.traffic` (every other vehicle, each step), both
+         only when a reset option asks for them (``ssm``, ``report_traffic``).
 
 The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
 
@@ -18,7 +21,7 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 2)
+PROTOCOL_VERSION: tuple[int, int] = (1, 3)
 
 
 def format_version(version: tuple[int, int]) -> str:

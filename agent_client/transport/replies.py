@@ -16,7 +16,7 @@ observation) apply to servers of 1.2 and later.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 
 from agent_client.errors import InvalidReply
 from protocol.errors import ErrorCode
@@ -35,6 +35,7 @@ from protocol.messages import (
     Request,
     Reset,
     Step,
+    Traffic,
     Welcome,
 )
 from protocol.schema import NEIGHBOUR_SLOTS, Flattener
@@ -294,6 +295,8 @@ class _ObservationRules:
         elif isinstance(request, Reset) and self.welcome.protocol >= (1, 2):
             self.first()
         self.ceiling()
+        self.safety()
+        self.traffic()
 
     def sequence(self) -> None:
         obs, request = self.obs, self.request
@@ -543,6 +546,40 @@ class _ObservationRules:
         if trip.average_speed is not None and not trip.average_speed > 0:
             self.rule("observation.ceiling.average_speed", trip.average_speed, "> 0 m/s (§4.5)")
 
+    def safety(self) -> None:
+        obs, safety = self.obs, self.obs.safety
+        if safety is None:
+            return
+        if not (obs.terminated or obs.truncated):
+            self.rule("observation.safety", None, "nil until the last observation (§4.7)")
+            return
+        for i, conflict in enumerate(safety.conflicts):
+            if conflict.end < conflict.begin:
+                self.rule(
+                    f"observation.safety.conflicts[{i}].end",
+                    conflict.end,
+                    f"not before begin {conflict.begin:g} s (§4.7)",
+                )
+            spent = (conflict.ttc_below, conflict.drac_beyond, conflict.ttc_integral)
+            if min(spent) < 0:
+                self.rule(f"observation.safety.conflicts[{i}]", min(spent), ">= 0 (§4.7)")
+
+    def traffic(self) -> None:
+        traffic = self.obs.traffic
+        if traffic is None:
+            return
+        count = len(traffic.id)
+        for name in _TRAFFIC_COLUMNS:
+            column = getattr(traffic, name)
+            if len(column) != count:
+                self.rule(
+                    f"observation.traffic.{name}",
+                    len(column),
+                    f"as many items as traffic.id ({count}) (§4.8)",
+                )
+
+
+_TRAFFIC_COLUMNS = tuple(f.name for f in fields(Traffic))
 
 _ALL_REASONS = TERMINAL_REASONS | TRUNCATION_REASONS
 

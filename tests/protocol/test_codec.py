@@ -12,6 +12,7 @@ from protocol.messages import (
     AppliedAction,
     Bye,
     Close,
+    Conflict,
     Ego,
     Error,
     Events,
@@ -22,8 +23,10 @@ from protocol.messages import (
     Neighbours,
     Observation,
     Reset,
+    Safety,
     ScenarioInfo,
     Step,
+    Traffic,
     Welcome,
 )
 
@@ -68,6 +71,24 @@ REPLIES = [
     Error("busy", "try later"),
     Bye(),
 ]
+
+TRAFFIC = Traffic(
+    id=("veh.1", "veh.2"),
+    vehicle_type=("human", "truck"),
+    lane=(0, 1),
+    position=(120.0, 80.5),
+    speed=(14.0, 12.0),
+    acceleration=(0.1, -0.4),
+    leader=("", "veh.1"),
+    gap=(200.0, 31.5),
+    leader_speed=(0.0, 14.0),
+)
+SAFETY = Safety(
+    conflicts=(Conflict("veh.1", 31.0, 36.5, 1.2, 4.5, None, 2.1, 0.4, 1.9),),
+    ttc_threshold=3.0,
+    drac_threshold=3.0,
+    pet_threshold=2.0,
+)
 
 
 @pytest.mark.parametrize("message", REQUESTS, ids=lambda m: type(m).__name__)
@@ -170,3 +191,40 @@ def test_an_error_names_the_field_it_is_about() -> None:
 def test_error_message_names_the_field() -> None:
     with pytest.raises(ProtocolError, match=r"step\.acceleration"):
         decode_request(msgpack.packb({"type": "step", "seq": 1, "acceleration": "fast"}))
+
+
+def test_safety_and_traffic_round_trip() -> None:
+    """Arrays of numbers, strings and messages (protocol 1.3) keep the fast path's verdict."""
+    obs = make_observation(terminated=True, reason="collision", safety=SAFETY, traffic=TRAFFIC)
+    assert decode_reply(encode(obs)) == obs
+    empty = make_observation(traffic=Traffic((), (), (), (), (), (), (), (), ()))
+    assert decode_reply(encode(empty)) == empty
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "words"),
+    [
+        ("speed", math.nan, "observation.traffic.speed[1]: nan is not a finite number"),
+        ("lane", 1.5, "observation.traffic.lane[1]"),
+        ("id", "x" * 5000, "observation.traffic.id[1]"),
+    ],
+)
+def test_a_bad_item_of_an_array_is_named(column: str, value: object, words: str) -> None:
+    wire = msgpack.unpackb(encode(make_observation(traffic=TRAFFIC)))
+    wire["traffic"][column][1] = value
+    with pytest.raises(ProtocolError, match=words.replace("[", r"\[").replace("]", r"\]")):
+        decode_reply(msgpack.packb(wire))
+
+
+def test_an_array_longer_than_the_protocol_allows_is_refused() -> None:
+    wire = msgpack.unpackb(encode(make_observation(traffic=TRAFFIC)))
+    wire["traffic"]["speed"] = [1.0] * 1025
+    with pytest.raises(ProtocolError, match="more than 1024 items"):
+        decode_reply(msgpack.packb(wire), max_frame_bytes=1 << 20)
+
+
+def test_an_infinite_conflict_measure_is_refused() -> None:
+    wire = msgpack.unpackb(encode(make_observation(safety=SAFETY)))
+    wire["safety"]["conflicts"][0]["max_drac"] = math.inf
+    with pytest.raises(ProtocolError, match=r"conflicts\[0\].max_drac"):
+        decode_reply(msgpack.packb(wire))

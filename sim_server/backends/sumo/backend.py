@@ -19,7 +19,10 @@ warm-up and is handed to the client (its type switched to the ego's) when the wa
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
+import shutil
+import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -36,7 +39,9 @@ from protocol.messages import (
     Neighbours,
     Observation,
     OptionValue,
+    Safety,
     ScenarioInfo,
+    Traffic,
 )
 from sim_server.backends.base import Backend
 from sim_server.backends.options import EpisodeOptions, TrafficOptions
@@ -47,6 +52,7 @@ from sim_server.backends.rules import (
     lane_change_refusal,
     limit_acceleration,
 )
+from sim_server.backends.sumo import ssm
 from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
 from sim_server.backends.sumo.scenarios import (
     BUILTIN_SCENARIOS,
@@ -55,6 +61,7 @@ from sim_server.backends.sumo.scenarios import (
     EGO_TYPE,
     HUMAN_TYPE,
     CustomScenario,
+    MeasureOptions,
     RingOptions,
     RingScenario,
     RoadScenario,
@@ -63,6 +70,7 @@ from sim_server.backends.sumo.scenarios import (
     build_road,
     default_cache_dir,
 )
+from sim_server.backends.sumo.traffic import observe_traffic
 from sim_server.errors import BackendError
 
 SPEED_MODE_NO_CHECKS = 32
@@ -92,6 +100,7 @@ class _Episode:
     dt: float
     substeps: int
     options: EpisodeOptions
+    measures: MeasureOptions
     end: EndRule
     entry_offset: float
     route_length: float
@@ -112,6 +121,8 @@ class _Episode:
     """Lane id -> (its index, the lane count of its edge): neither changes during a run."""
     min_gaps: dict[str, float] = field(default_factory=dict)
     """Vehicle id -> its minGap (fixed by its type)."""
+    ssm_log: Path | None = None
+    """Where SUMO's SSM device logs the ego's conflicts (reset option ``ssm``)."""
 
 
 class SumoBackend(Backend):
@@ -159,6 +170,10 @@ class SumoBackend(Backend):
         self._running = False
         self._episode: _Episode | None = None
         self._absent = replace(_ABSENT, gap=self.sensor_range)
+        self._logs: Path | None = None
+        """A temporary folder of SSM logs, made when first needed."""
+        self._log_numbers = itertools.count()
+        self._config: Path | None = None
         if over_traci is not None and traci_port is not None:
             try:
                 self._api = over_traci.attach()
@@ -182,14 +197,23 @@ class SumoBackend(Backend):
         episode_options = EpisodeOptions.parse(options)
         traffic = TrafficOptions.parse(options) if isinstance(chosen, RoadScenario) else None
         layout = RingOptions.parse(options) if isinstance(chosen, RingScenario) else None
+        measures = MeasureOptions.parse(options)
         self._episode = None
         try:
             config, route = self._files(chosen, traffic or layout)
-            self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS])
+            log = self._new_ssm_log() if measures.ssm else None
+            device = ssm.device_args(EGO_ID, log) if log is not None else []
+            self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS, *device])
+            self._config = config
+            self._drop_old_logs(keep=log)
             if layout is not None:
-                first = self._place_ego(layout, episode_options)
+                first = self._place_ego(layout, episode_options, measures)
             else:
-                first = self._insert_ego(route, episode_options, one_way=traffic is not None)
+                first = self._insert_ego(
+                    route, episode_options, measures, one_way=traffic is not None
+                )
+            assert self._episode is not None
+            self._episode.ssm_log = log
             self._sumo.ego_ready(self._api, EGO_ID)
             return first
         except self._errors as exc:
@@ -228,7 +252,9 @@ class SumoBackend(Backend):
         self._running = True
         self._loads = 0
 
-    def _insert_ego(self, route: str, options: EpisodeOptions, one_way: bool) -> Observation:
+    def _insert_ego(
+        self, route: str, options: EpisodeOptions, measures: MeasureOptions, one_way: bool
+    ) -> Observation:
         """Warm up, insert the ego at the start of `route` and observe it (seq 0)."""
         api = self._api
         dt = api.simulation.getDeltaT()
@@ -243,6 +269,7 @@ class SumoBackend(Backend):
             dt=dt,
             substeps=substeps,
             options=options,
+            measures=measures,
             end=EndRule(options, entry_time=api.simulation.getTime()),
             entry_offset=api.vehicle.getLanePosition(EGO_ID),
             route_length=route_length,
@@ -255,7 +282,9 @@ class SumoBackend(Backend):
         action = AppliedAction(0.0, 0, 0.0, 0)
         return self._observe(self._episode, 0, Events(), action)
 
-    def _place_ego(self, layout: RingOptions, options: EpisodeOptions) -> Observation:
+    def _place_ego(
+        self, layout: RingOptions, options: EpisodeOptions, measures: MeasureOptions
+    ) -> Observation:
         """The ring: the ego joins the humans in slot 0, drives as one of them through the
         warm-up, and is handed over at its end (seq 0)."""
         api = self._api
@@ -277,6 +306,7 @@ class SumoBackend(Backend):
             dt=dt,
             substeps=substeps,
             options=options,
+            measures=measures,
             end=EndRule(options, entry_time=api.simulation.getTime()),
             entry_offset=layout.ring_position(0),
             route_length=layout.laps() * layout.ring_length,
@@ -506,7 +536,32 @@ class SumoBackend(Backend):
             api.vehicle.remove(EGO_ID)
         if episode.options.report_ceiling:
             obs = replace(obs, ceiling=self._leader_trip(episode))
+        if episode.ssm_log is not None:
+            obs = replace(obs, safety=self._conflicts(episode, episode.ssm_log))
         return obs
+
+    def _new_ssm_log(self) -> Path:
+        """A fresh file name for the next episode's SSM log."""
+        if self._logs is None:
+            self._logs = Path(tempfile.mkdtemp(prefix="av-bridge-ssm-"))
+        return self._logs / f"ssm-{next(self._log_numbers)}.xml"
+
+    def _drop_old_logs(self, keep: Path | None) -> None:
+        """Delete the logs of abandoned episodes (SUMO has written them out by now)."""
+        if self._logs is not None:
+            for old in self._logs.iterdir():
+                if old != keep:
+                    old.unlink(missing_ok=True)
+
+    def _conflicts(self, episode: _Episode, log: Path) -> Safety:
+        """The ego's conflicts from the SSM log, which SUMO writes out when the simulation is
+        reloaded: reload the scenario (without the device), read the log, delete it."""
+        assert self._config is not None
+        self._load(["-c", str(self._config), *_FORCED_ARGS])
+        try:
+            return ssm.read_log(log, episode.dt)
+        finally:
+            log.unlink(missing_ok=True)
 
     def _leader_trip(self, episode: _Episode) -> LeaderTrip | None:
         api = self._api
@@ -592,9 +647,16 @@ class SumoBackend(Backend):
             neighbours=neighbours,
             events=events,
             action=action,
+            traffic=self._traffic(episode),
         )
         episode.last = obs
         return obs
+
+    def _traffic(self, episode: _Episode) -> Traffic | None:
+        """Every other vehicle (reset option ``report_traffic``), or None."""
+        if not episode.measures.report_traffic:
+            return None
+        return observe_traffic(self._api, EGO_ID, self.sensor_range, episode.min_gaps)
 
     def _frame(self) -> tuple[float, float, float, float]:
         """The ego's position and the unit normal to the left of its heading."""
@@ -655,6 +717,7 @@ class SumoBackend(Backend):
             ego=ego,
             events=events,
             action=action,
+            traffic=self._traffic(episode),
         )
 
     # ----------------------------------------------------------------------- lifecycle
@@ -671,6 +734,9 @@ class SumoBackend(Backend):
 
     def close(self) -> None:
         self._broken()
+        if self._logs is not None:
+            shutil.rmtree(self._logs, ignore_errors=True)
+            self._logs = None
 
 
 def _second(pair: tuple[str, float]) -> float:

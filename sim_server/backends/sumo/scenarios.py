@@ -45,6 +45,21 @@ EGO_ROUTE = "ego_route"
 HUMAN_TYPE = "human"
 
 
+@dataclass(frozen=True, slots=True)
+class MeasureOptions(ParsedOptions):
+    """What SUMO reports beyond the ego's own observation, on every SUMO scenario."""
+
+    ssm: bool = False
+    """Equip the ego with SUMO's SSM device and report its conflicts on the last observation
+    (`protocol.messages.Safety`)."""
+    report_traffic: bool = False
+    """Report every other vehicle on every observation (`protocol.messages.Traffic`)."""
+
+
+MEASURE_OPTIONS = MeasureOptions().as_options()
+"""The announced defaults of the measurement options (copy before changing)."""
+
+
 @dataclass(frozen=True)
 class RoadScenario:
     """A straight road with Poisson human traffic on every lane."""
@@ -57,7 +72,7 @@ class RoadScenario:
     defaults: dict[str, OptionValue] = field(default_factory=dict)
 
     def info(self) -> ScenarioInfo:
-        options = {**COMMON_OPTIONS, **TRAFFIC_OPTIONS, **self.defaults}
+        options = {**COMMON_OPTIONS, **TRAFFIC_OPTIONS, **MEASURE_OPTIONS, **self.defaults}
         return ScenarioInfo(self.name, self.description, options, ROAD_STEP_LENGTH)
 
     def build(self, options: Mapping[str, OptionValue], cache_dir: Path) -> Path:
@@ -76,7 +91,7 @@ class CustomScenario:
     def info(self) -> ScenarioInfo:
         description = f"user scenario {self.sumocfg} with ego route {self.ego_route!r}"
         step_length = self.step_length()
-        options = dict(COMMON_OPTIONS)
+        options = {**COMMON_OPTIONS, **MEASURE_OPTIONS}
         interval = options["decision_interval"]
         assert isinstance(interval, float)
         steps = round(interval / step_length)
@@ -187,7 +202,7 @@ class RingScenario:
 
     def info(self) -> ScenarioInfo:
         common = {k: v for k, v in COMMON_OPTIONS.items() if k not in RING_OMITTED}
-        options = {**common, **RING_OPTIONS, **self.defaults}
+        options = {**common, **RING_OPTIONS, **MEASURE_OPTIONS, **self.defaults}
         return ScenarioInfo(self.name, self.description, options, ROAD_STEP_LENGTH)
 
     def build(self, options: Mapping[str, OptionValue], cache_dir: Path) -> Path:

@@ -18,7 +18,7 @@ from agent_client.transport.recording import WireRecorder
 from protocol.codec import encode
 from protocol.messages import Bye, Close, Hello, Reset, Step
 from protocol.recording import MANIFEST, REPLY, REQUEST, read_records, stream_name
-from protocol.version import PROTOCOL_VERSION
+from protocol.version import PROTOCOL_VERSION, format_version
 from tests.agent_client.conformance.toys import ToyServer, request_of
 from tests.agent_client.transport.servers import DirectToy
 
@@ -88,7 +88,7 @@ def test_the_manifest_says_what_was_recorded_and_is_completed_at_close(tmp_path:
         recorder.close()
     written = manifest(folder)
     assert written["format"] == "av-bridge-recording" and written["format_version"] == 1
-    assert written["protocol"] == "1.2" and written["seeds"] == [5]
+    assert written["protocol"] == format_version(PROTOCOL_VERSION) and written["seeds"] == [5]
     assert written["complete"] is True
     (stream,) = written["streams"]  # type: ignore[misc]
     assert stream["server"] == toy.address and stream["welcome"]["backend"] == "fake"

@@ -19,6 +19,7 @@ from protocol.messages import (
     ActionSchema,
     Bye,
     Close,
+    Conflict,
     Error,
     Events,
     Hello,
@@ -26,8 +27,10 @@ from protocol.messages import (
     Neighbour,
     Observation,
     Reset,
+    Safety,
     ScenarioInfo,
     Step,
+    Traffic,
     Welcome,
 )
 from protocol.schema import OBSERVATION_FIELDS
@@ -194,6 +197,17 @@ STEP_CASES: list[tuple[str, Breaker, str]] = [
      "observation.events.lane_change_started"),
     ("ceiling running", lambda o: replace(o, ceiling=LeaderTrip("x", 0.0, 1.0, 10.0)),
      "observation.ceiling"),
+    ("safety running", lambda o: replace(o, safety=Safety((), 3.0, 3.0, 2.0)),
+     "observation.safety"),
+    ("conflict ends first", lambda o: replace(
+        o, terminated=True, reason="collision", events=replace(
+            o.events, collision=True, collision_with="x"),
+        safety=Safety((Conflict("x", 5.0, 4.0, 1.0, 4.0, None, 0.5, 0.1, 0.2),), 3.0, 3.0, 2.0)),
+     "observation.safety.conflicts[0].end"),
+    ("traffic columns", lambda o: replace(
+        o, traffic=Traffic(("a", "b"), ("h", "h"), (0,), (1.0, 2.0), (1.0, 2.0), (0.0, 0.0),
+                           ("", ""), (200.0, 200.0), (0.0, 0.0))),
+     "observation.traffic.lane"),
 ]  # fmt: skip
 
 
