@@ -59,6 +59,14 @@ def add_parser(commands: Commands) -> None:
     evaluate.add_argument(
         "--table2-bins", type=int, default=10, help="ranges of training episodes (default 10)"
     )
+    evaluate.add_argument(
+        "--trajectory-seeds",
+        type=int,
+        nargs="+",
+        metavar="SEED",
+        help="evaluated seeds whose episodes the report draws (time-space diagrams, time "
+        "series); default: the first seed and the policy's most critical episode",
+    )
     add_record_argument(evaluate)
     evaluate.set_defaults(run=run)
 
@@ -77,6 +85,8 @@ def evaluation_command(args: argparse.Namespace, scenario: str, out: Path) -> st
         parts += ["--run", str(args.run_folder), "--table2-bins", str(args.table2_bins)]
     if args.cf_policy is not None:
         parts += ["--cf-policy", args.cf_policy]
+    if args.trajectory_seeds is not None:
+        parts += ["--trajectory-seeds", *map(str, args.trajectory_seeds)]
     return shlex.join(parts)
 
 
@@ -92,7 +102,7 @@ def default_out(policy: str) -> Path:
 def run(args: argparse.Namespace) -> int:
     from agent_client.drivers.spec import load_driver, training_settings
     from agent_client.envs.remote_env import RemoteEnv
-    from agent_client.evaluation.report import write_report
+    from agent_client.evaluation.report import check_trajectory_seeds, write_report
     from agent_client.training.run_log import EPISODE_CSV, read_rows
 
     trained_scenario, trained_options = training_settings(args.policy)
@@ -104,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
     args.option = sorted(options.items())  # the rerun command names them explicitly
     out = args.out if args.out is not None else default_out(args.policy)
     seeds = list(range(args.seed, args.seed + args.episodes))
+    if args.trajectory_seeds is not None:
+        check_trajectory_seeds(args.trajectory_seeds, seeds)
     specs = {"policy": args.policy, "baseline": args.baseline}
     if args.cf_policy is not None:
         specs["cf_policy"] = args.cf_policy
@@ -124,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         if wire is not None:
             wire.close()
     evaluation = _evaluation(args, scenario, seeds, options, welcome, runs, out, training_rows)
-    path = write_report(out, evaluation)
+    path = write_report(out, evaluation, args.trajectory_seeds)
     _print_comparison(json.loads((out / "metrics.json").read_text()))
     print(f"report: {path} (metrics.json and figures in {out})")
     return 0

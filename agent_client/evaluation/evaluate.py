@@ -25,7 +25,8 @@ from agent_client.constants import MIN_MOVING_SPEED
 from agent_client.drivers.episode import Driver, Episode, run_episode
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.evaluation.metrics import EpisodeSamples, EpisodeSummary, episode_summary
-from protocol.messages import Observation, OptionValue
+from agent_client.evaluation.trajectories import EpisodeTrace
+from protocol.messages import Observation, OptionValue, Safety
 
 ROLE_LABELS = {"policy": "policy", "baseline": "baseline", "cf_policy": "CF-only policy"}
 """How the report names each role of `Evaluation.drivers`."""
@@ -79,6 +80,10 @@ class EpisodeRecord:
     lane_change_gaps: list[LaneChangeGap] = field(default_factory=list)
     refusals: dict[str, int] = field(default_factory=dict)
     """Refused lane changes by `protocol.messages.LaneChangeRefusal` value."""
+    trace: EpisodeTrace | None = None
+    """The ego's and its neighbours' trajectories, for the report's pictures of an episode."""
+    safety: Safety | None = None
+    """The simulator's surrogate safety measures of the episode (None if not reported)."""
 
     @classmethod
     def from_episode(cls, episode: Episode) -> EpisodeRecord:
@@ -98,6 +103,8 @@ class EpisodeRecord:
             lane_count=max(o.ego.lane_count for o in observations),
             lane_change_gaps=lane_change_gaps(observations),
             refusals=dict(refusals),
+            trace=EpisodeTrace.from_observations(observations, episode.step_length, episode.seed),
+            safety=observations[-1].safety,
         )
 
 
@@ -107,10 +114,13 @@ def evaluate_driver(
     seeds: Sequence[int],
     on_episode: Callable[[EpisodeRecord], None] | None = None,
 ) -> list[EpisodeRecord]:
-    """Drive one episode per seed (the same seeds for every driver compared)."""
+    """Drive one episode per seed (the same seeds for every driver compared), with the
+    simulator's surrogate safety measures where the scenario offers them (option ``ssm``)."""
     records = []
+    measures: dict[str, OptionValue] = {"ssm": True} if "ssm" in env.scenario_options else {}
     for index, seed in enumerate(seeds):
-        record = EpisodeRecord.from_episode(run_episode(env, driver, seed, index))
+        episode = run_episode(env, driver, seed, index, options=measures)
+        record = EpisodeRecord.from_episode(episode)
         if on_episode is not None:
             on_episode(record)
         records.append(record)

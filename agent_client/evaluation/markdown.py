@@ -50,6 +50,7 @@ def render_markdown(metrics: dict[str, Any]) -> str:
     """The report as markdown, from `build_metrics`' dictionary."""
     lines = _setting_section(metrics)
     lines += _cf_section(metrics)
+    lines += _safety_section(metrics)
     if metrics["lane_changing"] is not None:
         lines += _lc_section(metrics)
     else:
@@ -59,6 +60,7 @@ def render_markdown(metrics: dict[str, Any]) -> str:
             "Not applicable: the scenario has one lane (evaluate on `cflc` for these tables).",
             "",
         ]
+    lines += _trajectory_section(metrics)
     lines += [
         f"Every figure above is in `metrics.json`. Paper: {metrics['paper']['source']}.",
         "",
@@ -341,3 +343,98 @@ def _integrated_vs_cf_section(versus: dict[str, Any] | None, paper: dict[str, An
         "",
         "Fig. 9 above shows the CF-only policy's speed distribution too.",
     ]
+
+
+# --------------------------------------------------------------------------- chosen episodes
+
+
+def _trajectory_section(metrics: dict[str, Any]) -> list[str]:
+    """Time series and time-space diagrams of the chosen episodes (docs/evaluation.md)."""
+    plan = metrics["figures"].get("trajectories") or []
+    lines = ["## Trajectories of chosen episodes", ""]
+    if not plan:
+        return [*lines, "No episode traces in these records: nothing to draw.", ""]
+    lines += [
+        "The first seed and the policy's most critical episode (a collision, else the smallest "
+        "minimum TTC, else the smallest minimum time headway), unless `--trajectory-seeds` "
+        "chose others. docs/evaluation.md explains how to read the pictures.",
+        "",
+    ]
+    for entry in plan:
+        seed = entry["seed"]
+        lines += [
+            f"### Seed {seed}: {entry['why']}",
+            "",
+            f"![time series, seed {seed}]({entry['time_series']})",
+            "",
+            "Speed, gap to the leader, acceleration and jerk of each driver on this seed over the "
+            f"time since the episode's start; dashed: the speed limit and +/-{JERK_COMFORT_LIMIT} "
+            "m/s^3; dotted verticals: lane changes started, in the driver's colour.",
+            "",
+        ]
+        for role, name in entry["time_space"].items():
+            lines += [f"![time-space diagram: {ROLE_LABELS[role]}, seed {seed}]({name})", ""]
+        lines += [
+            "Time-space diagrams, one row per lane (leftmost on top): along the road (left) and "
+            "from the ego's front (right); the ego is the thick black line in its lane, the "
+            "neighbours it observed are coloured by their speed; purple triangles and dashed "
+            "(dotted) verticals mark its lane changes started (completed), a red X a collision.",
+            "",
+        ]
+    return lines
+
+
+_SAFETY_ROWS: tuple[tuple[str, str, str], ...] = (
+    ("conflicts per km", "conflicts_per_km", "f2"),
+    ("episodes with a conflict", "episodes_with_conflict", "d"),
+    ("conflicts with min TTC < 1.5 s", "critical_conflicts", "d"),
+    ("minimum TTC (s)", "min_ttc", "f2"),
+    ("median of the conflicts' minimum TTC (s)", "median_conflict_min_ttc", "f2"),
+    ("time exposed, TTC < 3 s (s per km)", "ttc_exposed_s_per_km", "f2"),
+    ("time exposed (% of driving time)", "ttc_exposed_share", "pct"),
+    ("time-integrated TTC (s² per km)", "ttc_integral_per_km", "f2"),
+    ("maximum DRAC (m/s²)", "max_drac", "f2"),
+    ("DRAC > 3 m/s² (s per km)", "drac_beyond_s_per_km", "f2"),
+    ("minimum PET (s)", "min_pet", "f2"),
+)
+"""The safety table's rows: label, key of `safety.safety_figures`, format."""
+
+
+def _safety_cell(value: Any, kind: str) -> str:
+    if value is None:
+        return "-"
+    if kind == "pct":
+        return _pct(value, 2)
+    return str(value) if kind == "d" else _f(value)
+
+
+def _safety_section(metrics: dict[str, Any]) -> list[str]:
+    """SUMO's surrogate safety measures of every driver on the same seeds, or why there are none."""
+    drivers = {r: d for r, d in metrics["drivers"].items() if d.get("safety")}
+    lines = ["## Surrogate safety measures (SUMO's SSM device)", ""]
+    if not drivers:
+        why = "Not reported: the server's scenario offers no `ssm` option (docs/protocol.md §4.7)."
+        return [*lines, why, ""]
+    header = ["measure", *(f"{ROLE_LABELS[r]} (`{d['spec']}`)" for r, d in drivers.items())]
+    rows = [
+        [label, *(_safety_cell(d["safety"][key], kind) for d in drivers.values())]
+        for label, key, kind in _SAFETY_ROWS
+    ]
+    lines += _table(header, rows)
+    thresholds = next(iter(drivers.values()))["safety"]["thresholds"]
+    lines += [
+        "",
+        f"A conflict is an encounter of the ego with another vehicle in which TTC fell below "
+        f"{thresholds['ttc_s']:g} s, DRAC rose above {thresholds['drac']:g} m/s² or PET fell below "
+        f"{thresholds['pet_s']:g} s, as SUMO's SSM device measures them at every simulation step "
+        "(SUMO's default thresholds); a minimum TTC under 1.5 s is serious (Van der Horst 1991). "
+        "PET is defined for crossing and merging paths only, so it is rarely set on a straight "
+        "road. The same seeds for every driver.",
+        "",
+    ]
+    figure = metrics["figures"].get("safety")
+    if figure:
+        lines += [f"![surrogate safety measures]({figure})", ""]
+    else:
+        lines += ["No driver had a conflict on these seeds: there is no distribution to draw.", ""]
+    return lines

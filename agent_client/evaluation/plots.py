@@ -86,3 +86,49 @@ def plot_jerk_distribution(
     axis.legend(fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_safety(metrics: dict[str, Any], path: Path) -> bool:
+    """SUMO's surrogate safety measures: the distribution of the conflicts' minimum TTC per
+    driver, and conflicts and time exposed per km. False (nothing drawn) without a conflict."""
+    drivers = {r: d["safety"] for r, d in metrics["drivers"].items() if d.get("safety")}
+    if not any(figures["conflicts"] for figures in drivers.values()):
+        return False
+    plt = _pyplot()
+    fig, (cdf, rates) = plt.subplots(
+        1, 2, figsize=(10, 4.2), constrained_layout=True, width_ratios=(3, 2)
+    )
+    thresholds = next(iter(drivers.values()))["thresholds"]
+    for role, figures in drivers.items():
+        values = np.array(figures["conflict_min_ttcs"])
+        label = f"{ROLE_LABELS[role]}: {figures['conflicts']} conflicts"
+        if len(values):  # the empirical distribution, from 0 at 0 s to 1 at the plot's edge
+            share = np.arange(len(values) + 2) / len(values)
+            x = np.concatenate(([0.0], values, [thresholds["ttc_s"] * 1.05]))
+            cdf.step(x, np.minimum(share, 1.0), where="post", color=COLOURS[role], label=label)
+        else:
+            cdf.plot([], [], color=COLOURS[role], label=label)
+    cdf.axvline(thresholds["critical_ttc_s"], color="tab:red", ls="--", label="critical, 1.5 s")
+    cdf.axvline(thresholds["ttc_s"], color="k", ls=":", label=f"conflict, {thresholds['ttc_s']} s")
+    cdf.set(
+        title="Minimum TTC of each conflict (SUMO's SSM device)",
+        xlabel="minimum time to collision (s)",
+        ylabel="share of the driver's conflicts",
+        xlim=(0, thresholds["ttc_s"] * 1.05),
+        ylim=(0, 1.02),
+    )
+    cdf.legend(fontsize=8, loc="upper left")
+    names = ("conflicts_per_km", "ttc_exposed_s_per_km")
+    labels = ("conflicts per km", "s below TTC 3 s per km")
+    width = 0.8 / len(drivers)
+    for i, (role, figures) in enumerate(drivers.items()):
+        heights = [figures[name] or 0.0 for name in names]
+        x = np.arange(len(names)) + (i - (len(drivers) - 1) / 2) * width
+        bars = rates.bar(x, heights, width, color=COLOURS[role], label=ROLE_LABELS[role])
+        rates.bar_label(bars, fmt="%.2f", fontsize=7)
+    rates.set_xticks(np.arange(len(names)), labels, fontsize=8)
+    rates.set(title="Per km driven", ylim=(0, None))
+    rates.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

@@ -1,7 +1,9 @@
 """Write an evaluation out: ``metrics.json``, ``report.md`` and the figures (Figs. 9, 10, 13).
 
 `build_metrics` computes every number; the markdown is written from that dictionary only, so
-everything the report says is in ``metrics.json`` too.
+everything the report says is in ``metrics.json`` too. Besides the paper's figures the report
+draws chosen episodes (`trajectory_plan`): by default the first seed and the policy's most
+critical episode, each driver's time-space diagram and the drivers' time series on that seed.
 """
 
 from __future__ import annotations
@@ -16,15 +18,22 @@ from typing import Any
 
 import numpy as np
 
-from agent_client.evaluation.evaluate import Evaluation
+from agent_client.errors import UsageError
+from agent_client.evaluation.evaluate import ROLE_LABELS, EpisodeRecord, Evaluation
 from agent_client.evaluation.markdown import render_markdown
 from agent_client.evaluation.paper import PAPER
-from agent_client.evaluation.plots import plot_jerk_distribution, plot_speed_distribution
+from agent_client.evaluation.plots import (
+    plot_jerk_distribution,
+    plot_safety,
+    plot_speed_distribution,
+)
 from agent_client.evaluation.summaries import summarise, table2
 from agent_client.evaluation.targets import targets_met
+from agent_client.evaluation.trajectory_plots import plot_time_series, plot_time_space
 
 SPEED_FIGURE = "speed_distribution.png"
 JERK_FIGURE = "jerk_distribution.png"
+SAFETY_FIGURE = "safety.png"
 
 
 def _ratio(numerator: float | None, denominator: float | None) -> float | None:
@@ -33,8 +42,11 @@ def _ratio(numerator: float | None, denominator: float | None) -> float | None:
     return numerator / denominator
 
 
-def build_metrics(evaluation: Evaluation) -> dict[str, Any]:
-    """Every figure of the report as plain JSON-ready values."""
+def build_metrics(
+    evaluation: Evaluation, trajectory_seeds: Sequence[int] | None = None
+) -> dict[str, Any]:
+    """Every figure of the report as plain JSON-ready values (`trajectory_seeds`: the episodes
+    to draw, default `trajectory_plan`'s choice)."""
     drivers = {
         role: {"spec": run.spec, **summarise(run.records)}
         for role, run in evaluation.drivers().items()
@@ -53,8 +65,18 @@ def build_metrics(evaluation: Evaluation) -> dict[str, Any]:
         "comparison": _comparison(drivers["policy"], drivers["baseline"]),
         "lane_changing": _lane_changing(evaluation, drivers) if lanes > 1 else None,
         "paper": PAPER,
-        "figures": {"speed_distribution": SPEED_FIGURE, "jerk_distribution": JERK_FIGURE},
+        "figures": {
+            "speed_distribution": SPEED_FIGURE,
+            "jerk_distribution": JERK_FIGURE,
+            "safety": SAFETY_FIGURE if _any_conflict(drivers) else None,
+            "trajectories": trajectory_plan(evaluation, trajectory_seeds),
+        },
     }
+
+
+def _any_conflict(drivers: dict[str, Any]) -> bool:
+    """Whether any driver had a conflict (the safety figure is drawn only then)."""
+    return any(d["safety"] and d["safety"]["conflicts"] for d in drivers.values())
 
 
 def _comparison(policy: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
@@ -113,10 +135,15 @@ def _json_ready(value: Any) -> Any:
     return value
 
 
-def write_report(out: Path, evaluation: Evaluation) -> Path:
-    """Write metrics.json, report.md and the figures into `out`; returns the report's path."""
+def write_report(
+    out: Path, evaluation: Evaluation, trajectory_seeds: Sequence[int] | None = None
+) -> Path:
+    """Write metrics.json, report.md and the figures into `out`; returns the report's path.
+
+    `trajectory_seeds` chooses the episodes drawn one by one (`trajectory_plan`).
+    """
     out.mkdir(parents=True, exist_ok=True)
-    metrics = _json_ready(build_metrics(evaluation))
+    metrics = _json_ready(build_metrics(evaluation, trajectory_seeds))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     plot_speed_distribution(metrics, out / SPEED_FIGURE)
     jerks = {
@@ -124,9 +151,111 @@ def write_report(out: Path, evaluation: Evaluation) -> Path:
         for role, run in evaluation.drivers().items()
     }
     plot_jerk_distribution(jerks, metrics, out / JERK_FIGURE)
+    plot_safety(metrics, out / SAFETY_FIGURE)
+    _draw_trajectories(out, evaluation, metrics)
     path = out / "report.md"
     path.write_text(render_markdown(metrics))
     return path
+
+
+# --------------------------------------------------------------------------- chosen episodes
+
+
+def check_trajectory_seeds(chosen: Sequence[int], seeds: Sequence[int]) -> None:
+    """Refuse seeds that were not evaluated (`UsageError` naming them and the valid range)."""
+    missing = [seed for seed in chosen if seed not in seeds]
+    if missing:
+        valid = f"{seeds[0]}..{seeds[-1]}" if len(seeds) > 1 else str(seeds[0]) if seeds else "none"
+        raise UsageError(
+            f"--trajectory-seeds {' '.join(map(str, missing))}: not among the evaluated seeds "
+            f"({valid})"
+        )
+
+
+def most_critical(records: Sequence[EpisodeRecord]) -> tuple[int, str] | None:
+    """Index and reason of the most critical episode: the first with a collision, else the
+    smallest minimum TTC, else the smallest minimum time headway; None when none has either."""
+    inf = math.inf
+
+    def key(record: EpisodeRecord) -> tuple[int, float, float]:
+        s = record.summary
+        return (
+            0 if s.collisions else 1,
+            s.min_ttc if s.min_ttc is not None else inf,
+            s.min_time_headway if s.min_time_headway is not None else inf,
+        )
+
+    if not records:
+        return None
+    index = min(range(len(records)), key=lambda i: key(records[i]))
+    collided, ttc, headway = key(records[index])
+    if not collided:
+        return index, "the policy's most critical episode (a collision)"
+    if ttc < inf:
+        return index, f"the policy's most critical episode (smallest minimum TTC, {ttc:.2f} s)"
+    if headway < inf:
+        return index, (
+            f"the policy's most critical episode (smallest minimum time headway, {headway:.2f} s)"
+        )
+    return None
+
+
+def trajectory_plan(
+    evaluation: Evaluation, chosen: Sequence[int] | None = None
+) -> list[dict[str, Any]]:
+    """The episodes drawn and their files: `chosen` seeds, or by default the first seed and the
+    policy's `most_critical` episode (if another). Drivers without a trace are left out, and so
+    is a seed none of them has one for."""
+    seeds = list(evaluation.seeds)
+    reasons: dict[int, list[str]] = {}
+    if chosen is not None:
+        check_trajectory_seeds(chosen, seeds)
+        for seed in chosen:
+            reasons.setdefault(seed, ["chosen (--trajectory-seeds)"])
+    elif seeds:
+        reasons[seeds[0]] = ["the first seed"]
+        critical = most_critical(evaluation.policy.records)
+        if critical is not None:
+            reasons.setdefault(seeds[critical[0]], []).append(critical[1])
+    plan = []
+    for seed, why in reasons.items():
+        index = seeds.index(seed)
+        roles = [
+            role
+            for role, run in evaluation.drivers().items()
+            if index < len(run.records) and run.records[index].trace is not None
+        ]
+        if roles:
+            plan.append(
+                {
+                    "seed": seed,
+                    "why": "; ".join(why),
+                    "time_series": f"time_series_{seed}.png",
+                    "time_space": {role: f"time_space_{seed}_{role}.png" for role in roles},
+                }
+            )
+    return plan
+
+
+def _draw_trajectories(out: Path, evaluation: Evaluation, metrics: dict[str, Any]) -> None:
+    """The planned time-space diagrams and time series, into `out`."""
+    drivers = evaluation.drivers()
+    for entry in metrics["figures"]["trajectories"]:
+        seed = entry["seed"]
+        index = list(evaluation.seeds).index(seed)
+        traces = {}
+        for role, name in entry["time_space"].items():
+            trace = drivers[role].records[index].trace
+            assert trace is not None  # the plan holds drivers with a trace only
+            traces[role] = trace
+            title = (
+                f"{ROLE_LABELS[role]} ({drivers[role].spec}) on {evaluation.scenario}, "
+                f"seed {seed}: time-space diagram"
+            )
+            plot_time_space(trace, out / name, title)
+        labels = {role: f"{ROLE_LABELS[role]} ({drivers[role].spec})" for role in traces}
+        title = f"{evaluation.scenario}, seed {seed}: every driver on the same seed"
+        plot_time_series(traces, labels, out / entry["time_series"], title)
 
 
 _IMAGE = re.compile(r"(!\[[^\]]*\]\()([^)/][^)]*\))")

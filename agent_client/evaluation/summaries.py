@@ -22,6 +22,7 @@ import numpy as np
 from agent_client.constants import HEADWAY_SAFE, TTC_CRITICAL
 from agent_client.evaluation.evaluate import EpisodeRecord, LaneChangeGap
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate
+from agent_client.evaluation.safety import safety_figures
 
 
 def headway_stats(headways: np.ndarray) -> dict[str, float | None]:
@@ -105,6 +106,7 @@ def summarise(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
                 np.concatenate([r.ttcs for r in records]), sum(r.leader_steps for r in records)
             ),
             **_lane_change_figures(records),
+            "safety": safety_figures(records),
             "end_reasons": dict(sorted(Counter(s.reason for s in summaries).items())),
             "per_episode": _per_episode(summaries),
         }
