@@ -12,11 +12,11 @@ Two paths, one verdict:
   fields and type hints (as `dataclasses` compiles ``__init__``), which checks each field with
   an inline test of its exact msgpack type and hands anything that fails it to the field's
   converter, which converts (an integer where a float is expected) or raises the field's error.
-* **The fast path**, for the fixed-shape messages: those made of scalars and nested messages of
-  scalars, which are the ones sent at every step (`Step`, `Observation`; also `Close`, `Bye`,
-  `Error`). msgspec packs them, and reads them straight into the dataclass, checking structure
-  and types. A compiled check then adds what msgspec does not check (finite numbers, int64,
-  string lengths). What each path costs: README, "Bridge performance".
+* **The fast path**, for the fixed-shape messages: those made of scalars, nested messages of
+  scalars and arrays of either, which are the ones sent at every step (`Step`, `Observation`;
+  also `Close`, `Bye`, `Error`). msgspec packs them, and reads them straight into the
+  dataclass, checking structure and types. A compiled check then adds what msgspec does not
+  check (finite numbers, int64, string lengths). What each path costs: README, "Bridge performance".
 
 The fast path accepts a frame only if it is the frame `encode` writes for the message read from
 it. The precise path decodes that frame to the same message (the tests check both directions),
@@ -41,7 +41,7 @@ import msgpack
 import msgspec
 
 from protocol.errors import ErrorCode, ProtocolError
-from protocol.messages import REPLY_TYPES, REQUEST_TYPES, Message
+from protocol.messages import REPLY_TYPES, REQUEST_TYPES, Message, Observation
 
 DEFAULT_MAX_FRAME_BYTES = 64 * 1024
 """Largest frame a peer must accept; servers announce theirs in `Welcome.max_frame_bytes`."""
@@ -63,6 +63,10 @@ def encode(message: Message) -> bytes:
         return msgpack.packb(_wire_map(message), use_bin_type=True)
     fields = _ENCODER.encode(message)  # the map of the fields, in declaration order
     entry = _TYPE_ENTRIES[cls]
+    for name, tail in _NIL_TAILS.get(cls, ()):  # keys of a later minor version left out when nil
+        if getattr(message, name) is not None:
+            break
+        fields = bytes((fields[0] - 1,)) + fields[1 : -len(tail)]
     head = fields[0]
     if head < 0x8F:  # a fixmap (0x80-0x8e): one more entry fits in the same byte
         return bytes((head + 1,)) + entry + fields[1:]
@@ -84,6 +88,13 @@ def _encode_other(value: Any) -> Any:
 _ENCODER = msgspec.msgpack.Encoder(enc_hook=_encode_other)
 _MAP16 = struct.Struct(">H")
 
+
+_NIL_TAILS: dict[type, tuple[tuple[str, bytes], ...]] = {
+    Observation: tuple((name, msgpack.packb(name) + b"\xc0") for name in ("traffic", "safety")),
+}
+"""The trailing optional fields (last first) of 1.3 that `encode` leaves out when nil, with their
+packed ``key: nil`` entries: a 1.2 peer's frame and ours are then the same bytes, and keep the
+fast path on both sides. Only for fixmaps (fewer than 15 fields), whose count is in byte 0."""
 
 _TYPE_ENTRIES = {
     cls: msgpack.packb("type") + msgpack.packb(cls.TYPE) for cls in REQUEST_TYPES + REPLY_TYPES
@@ -148,6 +159,10 @@ def _wire_map(message: Any) -> dict[str, Any]:
     """The precise path's wire map of a message (generic, slow): the bytes `encode` must write."""
     wire = {"type": message.TYPE}
     wire.update(_to_wire(message))
+    for name, _ in _NIL_TAILS.get(type(message), ()):
+        if wire[name] is not None:
+            break
+        del wire[name]
     return wire
 
 

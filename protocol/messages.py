@@ -337,6 +337,9 @@ class Safety:
     ttc_threshold: float
     drac_threshold: float
     pet_threshold: float
+    ttc_below: float = 0.0
+    """Seconds of the episode in which some conflict's TTC was below its threshold (the ego's
+    time exposed, TET; conflicts at the same time count once)."""
 
 
 @dataclass(frozen=True, slots=True)

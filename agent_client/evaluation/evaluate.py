@@ -117,7 +117,7 @@ def evaluate_driver(
     """Drive one episode per seed (the same seeds for every driver compared), with the
     simulator's surrogate safety measures where the scenario offers them (option ``ssm``)."""
     records = []
-    measures: dict[str, OptionValue] = {"ssm": True} if "ssm" in env.scenario_options else {}
+    measures: dict[str, OptionValue] = {"ssm": True} if _offers_ssm(env) else {}
     for index, seed in enumerate(seeds):
         episode = run_episode(env, driver, seed, index, options=measures)
         record = EpisodeRecord.from_episode(episode)
@@ -125,6 +125,15 @@ def evaluate_driver(
             on_episode(record)
         records.append(record)
     return records
+
+
+def _offers_ssm(env: RemoteEnv) -> bool:
+    """The server measures safety (protocol 1.3, option ``ssm``) and the user did not say no."""
+    return (
+        env.welcome.protocol >= (1, 3)
+        and "ssm" in env.scenario_options
+        and "ssm" not in env.options
+    )
 
 
 @dataclass

@@ -32,11 +32,11 @@ def safety_figures(records: Sequence[EpisodeRecord]) -> dict[str, Any] | None:
     first: Safety = reported[0][1]
     conflicts = [c for _, safety in reported for c in safety.conflicts]
     km = sum(r.summary.distance for r, _ in reported) / 1000.0
-    hours = sum(r.summary.duration for r, _ in reported) / 3600.0
+    seconds = sum(r.summary.duration for r, _ in reported)
     min_ttcs = np.array([c.min_ttc for c in conflicts if c.min_ttc is not None])
     dracs = [c.max_drac for c in conflicts if c.max_drac is not None]
     pets = [c.min_pet for c in conflicts if c.min_pet is not None]
-    exposed = sum(c.ttc_below for c in conflicts)
+    exposed = sum(safety.ttc_below for _, safety in reported)  # overlapping conflicts once
     return {
         "episodes": len(reported),
         "thresholds": {
@@ -55,7 +55,7 @@ def safety_figures(records: Sequence[EpisodeRecord]) -> dict[str, Any] | None:
         "max_drac": max(dracs) if dracs else None,
         "min_pet": min(pets) if pets else None,
         "ttc_exposed_s_per_km": exposed / km if km > 0 else None,
-        "ttc_exposed_share": exposed / (hours * 3600.0) if hours > 0 else None,
+        "ttc_exposed_share": exposed / seconds if seconds > 0 else None,
         "ttc_integral_per_km": sum(c.ttc_integral for c in conflicts) / km if km > 0 else None,
         "drac_beyond_s_per_km": sum(c.drac_beyond for c in conflicts) / km if km > 0 else None,
         "conflict_min_ttcs": sorted(float(t) for t in min_ttcs),

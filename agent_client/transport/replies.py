@@ -52,6 +52,8 @@ WELL_KNOWN_OPTIONS: dict[str, type] = {
     "max_episode_time": float,
     "report_ceiling": bool,
     "ego_driver": str,
+    "ssm": bool,
+    "report_traffic": bool,
 }
 """Options the client sets when a scenario offers them (protocol.md §2.3), with their types."""
 
@@ -553,6 +555,9 @@ class _ObservationRules:
         if not (obs.terminated or obs.truncated):
             self.rule("observation.safety", None, "nil until the last observation (§4.7)")
             return
+        thresholds = (safety.ttc_threshold, safety.drac_threshold, safety.pet_threshold)
+        if min(thresholds) <= 0 or safety.ttc_below < 0:
+            self.rule("observation.safety", min(*thresholds, safety.ttc_below), "> 0 (§4.7)")
         for i, conflict in enumerate(safety.conflicts):
             if conflict.end < conflict.begin:
                 self.rule(

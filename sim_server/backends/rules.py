@@ -114,6 +114,11 @@ class EndRule:
         self.stopped_since: float | None = None
         """Time of the first observation of the current stop (None: not stopped)."""
 
+    @property
+    def entry_time(self) -> float:
+        """Simulation time at which the client took over the ego."""
+        return self._entry_time
+
     def check(self, obs: Observation) -> EndReason | None:
         """The reason the episode ends with `obs`, or None while it goes on."""
         if obs.events.collision:

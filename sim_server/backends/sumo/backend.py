@@ -173,7 +173,6 @@ class SumoBackend(Backend):
         self._logs: Path | None = None
         """A temporary folder of SSM logs, made when first needed."""
         self._log_numbers = itertools.count()
-        self._config: Path | None = None
         if over_traci is not None and traci_port is not None:
             try:
                 self._api = over_traci.attach()
@@ -204,7 +203,6 @@ class SumoBackend(Backend):
             log = self._new_ssm_log() if measures.ssm else None
             device = ssm.device_args(EGO_ID, log) if log is not None else []
             self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS, *device])
-            self._config = config
             self._drop_old_logs(keep=log)
             if layout is not None:
                 first = self._place_ego(layout, episode_options, measures)
@@ -555,11 +553,16 @@ class SumoBackend(Backend):
 
     def _conflicts(self, episode: _Episode, log: Path) -> Safety:
         """The ego's conflicts from the SSM log, which SUMO writes out when the simulation is
-        reloaded: reload the scenario (without the device), read the log, delete it."""
-        assert self._config is not None
-        self._load(["-c", str(self._config), *_FORCED_ARGS])
+        closed: load the small built-in ``cf`` road (not the scenario again, whose own outputs
+        would be overwritten), read the log, delete it. Over TraCI a load is acknowledged before
+        the old simulation has closed; a round trip after it waits for that."""
+        config, _ = self._files(BUILTIN_SCENARIOS["cf"], TrafficOptions())
+        self._load(["-c", str(config), *_FORCED_ARGS])
+        self._api.simulation.getTime()
         try:
-            return ssm.read_log(log, episode.dt)
+            return ssm.read_log(log, episode.dt, since=episode.end.entry_time)
+        except ssm.LogError as exc:
+            raise BackendError(ErrorCode.SIMULATOR_ERROR, str(exc)) from exc
         finally:
             log.unlink(missing_ok=True)
 

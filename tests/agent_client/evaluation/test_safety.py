@@ -19,7 +19,8 @@ CLOSE = Conflict("veh.7", 80.0, 83.0, 2.2, 2.0, None, 0.8, 0.0, 0.5)
 
 
 def with_safety(record: object, *conflicts: Conflict) -> object:
-    return replace(record, safety=Safety(conflicts, 3.0, 3.0, 2.0))  # type: ignore[type-var]
+    exposed = sum(c.ttc_below for c in conflicts)  # these conflicts do not overlap in time
+    return replace(record, safety=Safety(conflicts, 3.0, 3.0, 2.0, exposed))  # type: ignore[type-var]
 
 
 def test_figures_pool_conflicts_and_normalise_by_distance() -> None:

@@ -28,6 +28,13 @@ def backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
     sumo.close()
 
 
+@pytest.fixture(scope="module")
+def traci_backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
+    sumo = SumoBackend(cache_dir=tmp_path_factory.mktemp("scenarios"), traci=True)
+    yield sumo
+    sumo.close()
+
+
 def options(backend: SumoBackend, scenario: str, **changes: OptionValue) -> dict[str, OptionValue]:
     info = {s.name: s for s in backend.scenarios()}[scenario]
     return {**info.options, **changes}
@@ -68,6 +75,27 @@ def test_an_ego_that_rams_its_leader_has_a_conflict_with_it(backend: SumoBackend
     assert 0 < conflict.ttc_below <= conflict.end - conflict.begin + 0.1
     assert conflict.ttc_integral > 0
     assert decode_reply(encode(last)) == last  # on the wire as sent
+
+
+def test_over_traci_every_episode_gets_its_whole_log(traci_backend: SumoBackend) -> None:
+    """A TraCI load is acknowledged before SUMO has written the old log out: not read early."""
+    for _ in range(3):
+        reset = options(traci_backend, "cf", ssm=True, report_ceiling=False)
+        last = drive(traci_backend, traci_backend.reset("cf", 3, reset), 3.0)[-1]
+        assert last.reason == EndReason.COLLISION and last.safety is not None
+        assert last.events.collision_with in {c.foe for c in last.safety.conflicts}
+
+
+def test_on_the_ring_only_the_clients_driving_counts(backend: SumoBackend) -> None:
+    """SUMO drives the ring's ego through the warm-up: its encounters then are not the agent's."""
+    reset = options(backend, "ring", ssm=True, max_episode_time=5.0, warmup=200.0)
+    first = backend.reset("ring", 1, reset)
+    last = drive(backend, first, 0.0)[-1]
+    assert last.safety is not None
+    assert all(c.begin >= first.time - 1e-9 for c in last.safety.conflicts)
+    assert 0 <= last.safety.ttc_below <= last.time - first.time + 1e-9
+    for conflict in last.safety.conflicts:
+        assert conflict.ttc_below <= conflict.end - conflict.begin + 0.1 + 1e-9
 
 
 def test_a_careful_ego_has_fewer_and_milder_conflicts(backend: SumoBackend) -> None:
