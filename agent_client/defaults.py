@@ -32,5 +32,8 @@ EVALUATION_SEED = 200_000
 chose the policy."""
 CALIBRATION_SEED = 300_000
 """First seed of the episodes recorded for `agent-client calibrate-idm`."""
+CALIBRATION_EPISODES = 5
+"""Episodes `agent-client calibrate-idm` records by default: each one gives the car following of
+every background vehicle (on `cf` 50-85 followers), not of one stand-in."""
 PRETRAIN_SEED = 1_000_000
 """First seed of the IDM episodes recorded for behaviour cloning (`--pretrain-idm`)."""
