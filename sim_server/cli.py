@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import signal
 import sys
@@ -23,6 +24,7 @@ from protocol.transport.security import ServerCredentials, generate_keys, load_k
 from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS
 from sim_server import __version__
 from sim_server.backends.base import Backend
+from sim_server.backends.sumo.gui import DEFAULT_DELAY_MS, DEFAULT_SPAN_M, GuiView
 from sim_server.errors import UsageError
 from sim_server.serve.direct import DirectServer
 from sim_server.serve.lifecycle import stop_with_parent
@@ -105,7 +107,34 @@ def _add_simulator_arguments(group: argparse._ArgumentGroup) -> None:
         "--gui",
         action="store_true",
         help="with --backend sumo-traci: run sumo-gui instead of sumo, to watch the ego "
-        "(needs a display)",
+        "(needs a display); the view follows the ego, painted red",
+    )
+    group.add_argument(
+        "--gui-delay",
+        type=float,
+        metavar="MS",
+        help="with --gui: wall-clock ms per simulation step of an episode (default "
+        f"{DEFAULT_DELAY_MS:g}: real time at 0.1 s steps; 0 as fast as it goes)",
+    )
+    group.add_argument(
+        "--gui-span",
+        type=float,
+        metavar="M",
+        help=f"with --gui: metres of road across the window, around the ego (default "
+        f"{DEFAULT_SPAN_M:g})",
+    )
+    group.add_argument(
+        "--screenshots",
+        type=Path,
+        metavar="DIR",
+        help="with --gui: save each episode's steps as PNGs in DIR/episode-NNNN/ and, once it "
+        "is over, DIR/episode-NNNN.gif",
+    )
+    group.add_argument(
+        "--screenshot-every",
+        type=int,
+        metavar="N",
+        help="with --screenshots: every N-th step only (default 1)",
     )
     group.add_argument(
         "--traci-port",
@@ -286,6 +315,7 @@ def _check_simulator(args: argparse.Namespace) -> None:
             raise UsageError(f"{name} needs --backend sumo-traci, not --backend {args.backend}")
     if args.traci_port is not None and not 1 <= args.traci_port <= 65535:
         raise UsageError(f"--traci-port {args.traci_port}: expected a port in 1..65535")
+    _check_gui(args)
     if args.sumocfg is None:
         for value, name in (
             (args.ego_route, "--ego-route"),
@@ -300,6 +330,43 @@ def _check_simulator(args: argparse.Namespace) -> None:
         raise UsageError(f"--sumocfg {args.sumocfg}: no such file")
     if not args.ego_route:
         raise UsageError("--sumocfg needs --ego-route (a route id defined in your route files)")
+
+
+def _check_gui(args: argparse.Namespace) -> None:
+    """The view's options come with --gui and are in range; the --screenshots folder is made
+    here, so that a path that cannot be one fails before anything starts."""
+    given = (
+        ("--gui-delay", args.gui_delay),
+        ("--gui-span", args.gui_span),
+        ("--screenshots", args.screenshots),
+        ("--screenshot-every", args.screenshot_every),
+    )
+    for name, value in given:
+        if value is not None and not args.gui:
+            raise UsageError(f"{name} needs --gui (with --backend sumo-traci)")
+    if args.screenshot_every is not None and args.screenshots is None:
+        raise UsageError(f"--screenshot-every {args.screenshot_every}: needs --screenshots DIR")
+    if args.gui_delay is not None and not 0 <= args.gui_delay < math.inf:
+        raise UsageError(f"--gui-delay {args.gui_delay:g}: must be >= 0 ms")
+    if args.gui_span is not None and not 0 < args.gui_span < math.inf:
+        raise UsageError(f"--gui-span {args.gui_span:g}: must be > 0 m")
+    if args.screenshot_every is not None and args.screenshot_every < 1:
+        raise UsageError(f"--screenshot-every {args.screenshot_every}: must be at least 1")
+    if args.screenshots is not None:
+        try:
+            args.screenshots.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UsageError(f"--screenshots {args.screenshots}: {exc.strerror or exc}") from exc
+
+
+def _gui_view(args: argparse.Namespace) -> GuiView:
+    """The sumo-gui view the GUI options describe (defaults for those not given)."""
+    return GuiView(
+        delay_ms=DEFAULT_DELAY_MS if args.gui_delay is None else args.gui_delay,
+        span_m=DEFAULT_SPAN_M if args.gui_span is None else args.gui_span,
+        screenshots=None if args.screenshots is None else args.screenshots.resolve(),
+        screenshot_every=1 if args.screenshot_every is None else args.screenshot_every,
+    )
 
 
 def _check_recording(args: argparse.Namespace) -> None:
@@ -376,6 +443,7 @@ def _backend(args: argparse.Namespace) -> Backend:
             traci=True,
             gui=args.gui,
             traci_port=args.traci_port,
+            view=_gui_view(args) if args.gui else None,
         )
     return SumoBackend(cache_dir=args.cache_dir, custom=custom)
 

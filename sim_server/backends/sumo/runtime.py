@@ -20,6 +20,8 @@ from typing import IO, Any
 
 import libsumo
 
+from sim_server.backends.sumo.gui import GuiView, Viewer
+
 TRACI_START_TIMEOUT_S = 60.0
 """Longest wait for a sumo / sumo-gui process to accept the TraCI connection."""
 TRACI_STOP_TIMEOUT_S = 10.0
@@ -66,7 +68,12 @@ class OverTraci:
     name = "sumo-traci"
 
     def __init__(
-        self, gui: bool, port: int | None, host: str, binary: str | None, view: Any = None
+        self,
+        gui: bool,
+        port: int | None,
+        host: str,
+        binary: str | None,
+        view: GuiView | None = None,
     ) -> None:
         import traci
         import traci.connection
@@ -88,12 +95,17 @@ class OverTraci:
         self._log: IO[bytes] | None = None
         self._attached: Any = None
         self.view = view
+        self._viewer = Viewer(view) if gui and view is not None else None
 
     def ego_ready(self, api: Any, ego_id: str) -> None:
-        """Called once the ego of a new episode is in the simulation."""
+        """Called once the ego of a new episode is in the simulation: the view follows it."""
+        if self._viewer is not None:
+            self._viewer.ego_ready(api, ego_id)
 
     def stepped(self, api: Any, ego_id: str) -> None:
-        """Called after each decision's simulation steps."""
+        """Called after each decision's simulation steps: the view's pace and pictures."""
+        if self._viewer is not None:
+            self._viewer.stepped(api, ego_id)
 
     def attach(self) -> Any:
         """Connect to the SUMO at `port` now (it keeps running its own scenario until reset)."""
@@ -126,9 +138,9 @@ class OverTraci:
             connection.load(args)
             return connection
         port = free_port()
-        command = [self.binary, *args, "--remote-port", str(port)]
-        if self.gui:
-            command += ["--start", "--quit-on-end"]
+        command = [self.binary, *args, *self._gui_args(), "--remote-port", str(port)]
+        if self.gui and self.view is not None:  # at start only: a reload keeps the user's size
+            command += self.view.sumo_args()
         self._log = tempfile.TemporaryFile()  # noqa: SIM115 - kept open while SUMO runs
         self._process = subprocess.Popen(
             command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._log
@@ -168,8 +180,13 @@ class OverTraci:
         text = self._log.read().decode(errors="replace").strip()
         return " | ".join(text.splitlines()[-5:]) or "(no message)"
 
+    def _gui_args(self) -> list[str]:
+        """sumo-gui's own options, at start and at every load: without ``--start`` a reloaded
+        sumo-gui waits for its Run button and answers no TraCI command until then."""
+        return ["--start", "--quit-on-end"] if self.gui else []
+
     def load(self, api: Any, args: list[str]) -> None:
-        api.load(args)
+        api.load([*args, *self._gui_args()])
 
     def close(self, api: Any) -> None:
         self._attached = None
@@ -177,6 +194,8 @@ class OverTraci:
             api.close(wait=False)
         finally:
             self._stop_process()
+            if self._viewer is not None:  # sumo-gui has written its last pictures
+                self._viewer.close()
 
     def _stop_process(self) -> None:
         process, self._process = self._process, None
