@@ -19,7 +19,7 @@ from agent_client.conformance import FAIL, PASS, SKIP, WARN, ConformanceReport, 
 from protocol.codec import encode
 from protocol.messages import Close, Hello
 from protocol.transport.zeromq import connect_req
-from protocol.version import PROTOCOL_VERSION
+from protocol.version import PROTOCOL_VERSION, format_version
 from tests.agent_client.conformance.toys import (
     AcceptsBin,
     ActionAtSeqZero,
@@ -53,6 +53,8 @@ from tests.agent_client.conformance.toys import (
     WrongSeq,
     WrongStepLength,
 )
+
+OURS = format_version(PROTOCOL_VERSION)
 
 CHECKS = [
     "transport", "handshake", "version_refusal", "schema", "reset", "step", "reconnect",
@@ -168,7 +170,7 @@ def test_cli_exit_1_and_the_failing_row(capsys: pytest.CaptureFixture[str]) -> N
     ("server_class", "warned", "words"),
     [
         (OldNoStepLength, "schema", "announces no step_length (protocol 1.1): assuming 0.1 s"),
-        (VagueVersionMessage, "version_refusal", "does not name 2.0 and 1.2"),
+        (VagueVersionMessage, "version_refusal", f"does not name 2.0 and {OURS}"),
     ],
 )
 def test_what_the_protocol_allows_but_should_not_be_is_a_warning(
