@@ -41,7 +41,7 @@ import msgpack
 import msgspec
 
 from protocol.errors import ErrorCode, ProtocolError
-from protocol.messages import REPLY_TYPES, REQUEST_TYPES, Message, Observation
+from protocol.messages import REPLY_TYPES, REQUEST_TYPES, Message, MultiObservation, Observation
 
 DEFAULT_MAX_FRAME_BYTES = 64 * 1024
 """Largest frame a peer must accept; servers announce theirs in `Welcome.max_frame_bytes`."""
@@ -91,6 +91,7 @@ _MAP16 = struct.Struct(">H")
 
 _NIL_TAILS: dict[type, tuple[tuple[str, bytes], ...]] = {
     Observation: tuple((name, msgpack.packb(name) + b"\xc0") for name in ("traffic", "safety")),
+    MultiObservation: ((("traffic", msgpack.packb("traffic") + b"\xc0")),),
 }
 """The trailing optional fields (last first) of 1.3 that `encode` leaves out when nil, with their
 packed ``key: nil`` entries: a 1.2 peer's frame and ours are then the same bytes, and keep the

@@ -108,6 +108,28 @@ class Step:
 
 
 @dataclass(frozen=True, slots=True)
+class Command:
+    """One ego's decision within a `MultiStep` (since protocol 1.4): as `Step`, for ego `id`."""
+
+    id: str
+    acceleration: float
+    lane_change: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class MultiStep:
+    """One decision of every running ego (since protocol 1.4), after a reset with ``egos``.
+
+    `commands` has exactly one `Command` per ego of the last `MultiObservation` that had not
+    ended; `seq` numbers the steps as `Step` does (a repeat gets the cached reply).
+    """
+
+    TYPE: ClassVar[str] = "multi_step"
+    seq: int
+    commands: tuple[Command, ...]
+
+
+@dataclass(frozen=True, slots=True)
 class Close:
     """Ends the session; the server frees the simulation for the next client."""
 
@@ -366,9 +388,48 @@ class Observation:
     traffic: Traffic | None = None
 
 
-Request = Hello | Reset | Step | Close
-Reply = Welcome | Observation | Error | Bye
+@dataclass(frozen=True, slots=True)
+class EgoObservation:
+    """One ego's part of a `MultiObservation` (since protocol 1.4): an `Observation` without
+    the episode's clock, for the ego `id`.
+
+    `terminated`, `truncated` and `reason` are the ego's own: an ego whose drive ended
+    (collision, end of road, lost, stopped, time limit) is reported once so, then removed.
+    """
+
+    id: str
+    ego: Ego
+    neighbours: Neighbours
+    events: Events
+    action: AppliedAction
+    terminated: bool = False
+    truncated: bool = False
+    reason: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class MultiObservation:
+    """Every ego after a reset with ``egos`` (seq 0) or a `MultiStep` (since protocol 1.4).
+
+    `egos` lists each ego still driving before this step, in a stable order (the order egos
+    entered). The episode goes on while one of them runs: `terminated` once none is left and
+    none will come, `truncated` at the time limit (every running ego truncated too), and
+    `reason` then says why (`EndReason`). `traffic` as in `Observation`, when asked for.
+    """
+
+    TYPE: ClassVar[str] = "multi_observation"
+    seq: int
+    time: float
+    egos: tuple[EgoObservation, ...]
+    terminated: bool = False
+    truncated: bool = False
+    reason: str = ""
+    traffic: Traffic | None = None
+
+
+Request = Hello | Reset | Step | MultiStep | Close
+Reply = Welcome | Observation | MultiObservation | Error | Bye
 Message = Request | Reply
 
-REQUEST_TYPES: tuple[type[Request], ...] = (Hello, Reset, Step, Close)
-REPLY_TYPES: tuple[type[Reply], ...] = (Welcome, Observation, Error, Bye)
+REQUEST_TYPES: tuple[type[Request], ...] = (Hello, Reset, Step, MultiStep, Close)
+REPLY_TYPES: tuple[type[Reply], ...] = (Welcome, Observation, MultiObservation, Error, Bye)

@@ -12,6 +12,9 @@ Revision history:
     1.3  `observation.safety` (the simulator's surrogate safety measures of the episode, on its
          last observation) and `observation.traffic` (every other vehicle, each step), both
          only when a reset option asks for them (``ssm``, ``report_traffic``).
+    1.4  Many egos in one simulation: a reset that names the option ``egos`` is answered with
+         `multi_observation` (every ego's observation, per-ego ends) and stepped with
+         `multi_step` (one command per running ego).
 
 The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
 
@@ -21,7 +24,7 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 3)
+PROTOCOL_VERSION: tuple[int, int] = (1, 4)
 
 
 def format_version(version: tuple[int, int]) -> str:

@@ -20,6 +20,9 @@ from protocol.messages import (
     Error,
     Hello,
     Message,
+    MultiObservation,
+    MultiStep,
+    OptionValue,
     Reset,
     ScenarioInfo,
     Step,
@@ -45,6 +48,9 @@ class _Episode:
     last_seq: int
     last_reply: bytes
     running: bool
+    egos: tuple[str, ...] | None = None
+    """A multi-ego episode (a reset that named ``egos``): the ids of the egos still driving,
+    which the next `MultiStep` must command exactly; None for a one-ego episode."""
 
 
 class Session:
@@ -140,6 +146,8 @@ class Session:
             )
         if isinstance(request, Step):
             return self._step(request)
+        if isinstance(request, MultiStep):
+            return self._multi_step(request)
         if isinstance(request, Reset):
             return self._reset(request)
         if isinstance(request, Close):
@@ -172,29 +180,46 @@ class Session:
         if not 0 <= seed < 2**31:
             raise ProtocolError(ErrorCode.INVALID_NUMBER, f"seed {seed} is outside 0..2^31-1")
         self._episode = None
+        if "egos" in reset.options:
+            many = self.backend.reset_many(reset.scenario, seed, options, _egos(options))
+            reply = encode(many)
+            self._episode = _Episode(0, reply, not _ended(many), _running(many))
+            return reply
         obs = self.backend.reset(reset.scenario, seed, options)
         reply = encode(obs)
         self._episode = _Episode(last_seq=0, last_reply=reply, running=True)
         return reply
 
-    def _step(self, step: Step) -> bytes:
+    def _ordered(self, request: Step | MultiStep) -> _Episode | bytes:
+        """The running episode a step may advance, or the cached reply of a retried step."""
         episode = self._episode
         if episode is None:
-            raise ProtocolError(ErrorCode.OUT_OF_ORDER, "step before reset: send reset first")
-        if step.seq == episode.last_seq and step.seq > 0:
+            raise ProtocolError(
+                ErrorCode.OUT_OF_ORDER, f"{request.TYPE} before reset: send reset first"
+            )
+        if request.seq == episode.last_seq and request.seq > 0:
             return episode.last_reply  # a retried step: answer again, do not advance
         if not episode.running:
             raise ProtocolError(ErrorCode.OUT_OF_ORDER, "the episode has ended: send reset")
-        if step.seq != episode.last_seq + 1:
+        if request.seq != episode.last_seq + 1:
             raise ProtocolError(
                 ErrorCode.SEQUENCE_ERROR,
-                f"step seq {step.seq}: expected {episode.last_seq + 1} (or {episode.last_seq} "
-                "to repeat the last step)",
+                f"{request.TYPE} seq {request.seq}: expected {episode.last_seq + 1} (or "
+                f"{episode.last_seq} to repeat the last step)",
             )
-        if step.lane_change not in (-1, 0, 1):
+        many = episode.egos is not None
+        if many != isinstance(request, MultiStep):
+            wanted, why = ("multi_step", "its reset named egos") if many else ("step", "one ego")
             raise ProtocolError(
-                ErrorCode.INVALID_NUMBER, f"lane_change {step.lane_change} is not -1, 0 or 1"
+                ErrorCode.OUT_OF_ORDER, f"{request.TYPE} in an episode of {why}: send {wanted}"
             )
+        return episode
+
+    def _step(self, step: Step) -> bytes:
+        episode = self._ordered(step)
+        if isinstance(episode, bytes):
+            return episode
+        _check_lane_change(step.lane_change, "lane_change")
         try:
             obs = self.backend.step(step.seq, step.acceleration, step.lane_change)
         except BackendError:
@@ -205,10 +230,71 @@ class Session:
         episode.running = not (obs.terminated or obs.truncated)
         return reply
 
+    def _multi_step(self, step: MultiStep) -> bytes:
+        episode = self._ordered(step)
+        if isinstance(episode, bytes):
+            return episode
+        assert episode.egos is not None
+        commands = _commands(step, episode.egos)
+        try:
+            many = self.backend.step_many(step.seq, commands)
+        except BackendError:
+            episode.running = False
+            raise
+        reply = encode(many)
+        episode.last_seq, episode.last_reply = step.seq, reply
+        episode.running = not _ended(many)
+        episode.egos = _running(many)
+        return reply
+
     def _end_session(self) -> None:
         self.owner = None
         self.owner_connected = False
         self._episode = None
+
+
+def _check_lane_change(value: int, name: str) -> None:
+    if value not in (-1, 0, 1):
+        raise ProtocolError(ErrorCode.INVALID_NUMBER, f"{name} {value} is not -1, 0 or 1")
+
+
+def _egos(options: dict[str, OptionValue]) -> int:
+    egos = options["egos"]
+    assert isinstance(egos, int)  # merge_options checked its type against the default
+    if egos < 1:
+        raise ProtocolError(ErrorCode.INVALID_OPTION, f"option egos must be >= 1, got {egos}")
+    return egos
+
+
+def _running(many: MultiObservation) -> tuple[str, ...]:
+    """The egos a next `MultiStep` must command: those that have not ended."""
+    return tuple(e.id for e in many.egos if not (e.terminated or e.truncated))
+
+
+def _ended(many: MultiObservation) -> bool:
+    return many.terminated or many.truncated or not _running(many)
+
+
+def _commands(step: MultiStep, running: tuple[str, ...]) -> dict[str, tuple[float, int]]:
+    """The commands by ego id: exactly one for every running ego, each lane change valid."""
+    commands: dict[str, tuple[float, int]] = {}
+    for i, command in enumerate(step.commands):
+        if command.id in commands:
+            raise ProtocolError(
+                ErrorCode.INVALID_MESSAGE, f"commands[{i}]: a second command for {command.id!r}"
+            )
+        _check_lane_change(command.lane_change, f"commands[{i}].lane_change")
+        commands[command.id] = (command.acceleration, command.lane_change)
+    unknown = [ego for ego in commands if ego not in running]
+    missing = [ego for ego in running if ego not in commands]
+    if unknown or missing:
+        words = [f"no running ego {', '.join(map(repr, unknown))}"] if unknown else []
+        words += [f"no command for {', '.join(map(repr, missing))}"] if missing else []
+        raise ProtocolError(
+            ErrorCode.INVALID_MESSAGE,
+            f"multi_step {step.seq}: {'; '.join(words)} (running: {', '.join(running)})",
+        )
+    return commands
 
 
 def _printable(text: str, limit: int = 64) -> str:

@@ -9,17 +9,53 @@ options in `options`.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 
-from protocol.messages import ActionSchema, Observation, OptionValue, ScenarioInfo, Welcome
+from protocol.errors import ErrorCode
+from protocol.messages import (
+    ActionSchema,
+    EgoObservation,
+    MultiObservation,
+    Observation,
+    OptionValue,
+    ScenarioInfo,
+    Welcome,
+)
 from sim_server.errors import BackendError
 
-__all__ = ["DEFAULT_ACTION_SCHEMA", "DEFAULT_SENSOR_RANGE", "Backend", "BackendError"]
+__all__ = [
+    "DEFAULT_ACTION_SCHEMA",
+    "DEFAULT_SENSOR_RANGE",
+    "SINGLE_EGO_ID",
+    "Backend",
+    "BackendError",
+    "Commands",
+    "as_multi",
+]
 
 DEFAULT_SENSOR_RANGE = 200.0
 """Metres within which neighbours are reported as present."""
 
 DEFAULT_ACTION_SCHEMA = ActionSchema(acceleration_min=-6.0, acceleration_max=3.0)
 """Comfortable-to-hard braking down to -6 m/s^2, acceleration up to +3 m/s^2."""
+
+
+SINGLE_EGO_ID = "ego"
+"""The ego's id when a one-ego backend answers a reset that names ``egos`` (= 1)."""
+
+Commands = Mapping[str, tuple[float, int]]
+"""A `MultiStep`'s commands by ego id: (acceleration not yet clipped, lane change)."""
+
+
+def as_multi(obs: Observation, ego_id: str = SINGLE_EGO_ID) -> MultiObservation:
+    """A one-ego observation as the `MultiObservation` of a one-ego episode."""
+    mine = EgoObservation(
+        ego_id, obs.ego, obs.neighbours, obs.events, obs.action,
+        obs.terminated, obs.truncated, obs.reason,
+    )  # fmt: skip
+    return MultiObservation(
+        obs.seq, obs.time, (mine,), obs.terminated, obs.truncated, obs.reason, obs.traffic
+    )
 
 
 class Backend(ABC):
@@ -54,6 +90,29 @@ class Backend(ABC):
     @abstractmethod
     def close(self) -> None:
         """Release the simulator."""
+
+    max_egos: int = 1
+    """How many egos `reset_many` accepts; a backend that drives several overrides both
+    `reset_many` and `step_many`."""
+
+    def reset_many(
+        self, scenario: str, seed: int, options: dict[str, OptionValue], egos: int
+    ) -> MultiObservation:
+        """Start an episode with `egos` controlled vehicles (a reset naming ``egos``; seq 0).
+
+        This default serves one ego through `reset`, under the id `SINGLE_EGO_ID`."""
+        if egos > self.max_egos:
+            raise BackendError(
+                ErrorCode.INVALID_OPTION,
+                f"option egos {egos}: this backend drives at most {self.max_egos} ego(s)",
+            )
+        return as_multi(self.reset(scenario, seed, options))
+
+    def step_many(self, seq: int, commands: Commands) -> MultiObservation:
+        """Apply every running ego's command; the session has checked the ids are exactly the
+        running egos'."""
+        ((ego_id, (acceleration, lane_change)),) = commands.items()
+        return as_multi(self.step(seq, acceleration, lane_change), ego_id)
 
     def welcome(self, ours: Welcome) -> Welcome:
         """The welcome the server announces: `ours`, built from the attributes above (a backend

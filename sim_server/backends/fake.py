@@ -54,6 +54,7 @@ _SHARED = (
     "stop_gap",
     "stop_patience",
     "report_ceiling",
+    "egos",
 )
 """The common options the fake honours (``warmup``: the simulated time at which it starts)."""
 

@@ -101,6 +101,10 @@ def _typed(name: str, value: OptionValue, default: Any) -> OptionValue:
     return value
 
 
+MAX_EGOS = 1024
+"""The most egos one episode can have: the protocol's longest array."""
+
+
 @dataclass(frozen=True, slots=True)
 class EpisodeOptions(ParsedOptions):
     """The options every scenario of every backend shares (docs/protocol.md §6)."""
@@ -124,6 +128,9 @@ class EpisodeOptions(ParsedOptions):
     """Report the leader-at-entry's trip on the last observation."""
     ego_driver: str = "agent"
     """"agent": the client drives; otherwise the simulator's own driver model does."""
+    egos: int = 1
+    """Controlled vehicles (since protocol 1.4): a reset that names it gets `MultiObservation`
+    replies and is stepped with `MultiStep`; how a backend places them is its own."""
 
     BOUNDS: ClassVar[Mapping[str, Bounds]] = {
         "decision_interval": Bounds(0.0, 60.0, low_excluded=True),
@@ -133,6 +140,7 @@ class EpisodeOptions(ParsedOptions):
         "stop_speed": Bounds(0.0, 100.0),
         "stop_gap": Bounds(0.0, 10_000.0),
         "stop_patience": Bounds(0.0, 3600.0),
+        "egos": Bounds(1, MAX_EGOS),
     }
 
     @classmethod

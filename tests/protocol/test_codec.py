@@ -12,13 +12,17 @@ from protocol.messages import (
     AppliedAction,
     Bye,
     Close,
+    Command,
     Conflict,
     Ego,
+    EgoObservation,
     Error,
     Events,
     FieldSpec,
     Hello,
     LeaderTrip,
+    MultiObservation,
+    MultiStep,
     Neighbour,
     Neighbours,
     Observation,
@@ -47,11 +51,16 @@ def make_observation(**changes: object) -> Observation:
     return Observation(**values)  # type: ignore[arg-type]
 
 
+def _parts(obs: Observation) -> tuple[Ego, Neighbours, Events, AppliedAction]:
+    return obs.ego, obs.neighbours, obs.events, obs.action
+
+
 REQUESTS = [
     Hello((1, 0), "test"),
     Reset("cf", 7, {"flow": 1200.0, "report_ceiling": False, "name": "x", "none": None}),
     Reset("cflc"),
     Step(1, -2.5, -1),
+    MultiStep(4, (Command("ego.0", 1.5, 0), Command("ego.1", -3.0, 1))),
     Close(),
 ]
 REPLIES = [
@@ -70,6 +79,14 @@ REPLIES = [
     make_observation(ceiling=None, terminated=True, reason="collision"),
     Error("busy", "try later"),
     Bye(),
+    MultiObservation(
+        2,
+        30.2,
+        (
+            EgoObservation("ego.0", *_parts(make_observation())),
+            EgoObservation("ego.1", *_parts(make_observation()), True, False, "collision"),
+        ),
+    ),
 ]
 
 TRAFFIC = Traffic(

@@ -39,6 +39,8 @@ from protocol.messages import (
     Hello,
     LaneChange,
     LeaderTrip,
+    MultiObservation,
+    MultiStep,
     Neighbour,
     Neighbours,
     Observation,
@@ -347,7 +349,7 @@ def both_verdicts(decode: Any, frame: bytes) -> tuple[tuple[str, Any], tuple[str
 
 def test_the_per_step_messages_have_a_fast_path_and_the_others_do_not() -> None:
     assert {cls for cls in REQUEST_TYPES + REPLY_TYPES if codec._fast_decoder(cls)} == {
-        Step, Close, Observation, Error, Bye
+        Step, MultiStep, Close, Observation, MultiObservation, Error, Bye
     }  # fmt: skip
     assert codec._fast_decoder(Hello) is None and codec._fast_decoder(Welcome) is None
     assert codec._fast_decoder(Reset) is None

@@ -10,9 +10,12 @@ from protocol.errors import ErrorCode
 from protocol.messages import (
     Bye,
     Close,
+    Command,
     Error,
     Hello,
     Message,
+    MultiObservation,
+    MultiStep,
     Observation,
     OptionValue,
     Reset,
@@ -20,6 +23,7 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.version import PROTOCOL_VERSION
+from sim_server.backends.base import SINGLE_EGO_ID
 from sim_server.backends.fake import FakeBackend
 from sim_server.errors import BackendError
 from sim_server.session import Session
@@ -236,3 +240,77 @@ def test_a_failed_reset_ends_the_running_episode() -> None:
     started(session)
     assert error_code(ask(session, Reset("cf", 9))) == "insertion_failed"
     assert error_code(ask(session, Step(1, 0.0))) == "out_of_order"
+
+
+# --------------------------------------------------------------------------- many egos (1.4)
+
+
+def multi_started(session: Session, egos: int = 1) -> MultiObservation:
+    assert isinstance(ask(session, Hello(PROTOCOL_VERSION)), Welcome)
+    first = ask(session, Reset("cf", 1, {"egos": egos, "max_episode_time": 1.0}))
+    assert isinstance(first, MultiObservation), first
+    return first
+
+
+def test_a_reset_naming_egos_is_a_multi_ego_episode_even_with_one(session: Session) -> None:
+    first = multi_started(session)
+    assert first.seq == 0 and [e.id for e in first.egos] == [SINGLE_EGO_ID]
+    single = Session(FakeBackend())
+    ask(single, Hello(PROTOCOL_VERSION))
+    alone = ask(single, Reset("cf", 1, {"max_episode_time": 1.0}))
+    assert isinstance(alone, Observation)
+    assert first.egos[0].ego == alone.ego and first.time == alone.time  # the same episode
+    many = ask(session, MultiStep(1, (Command(SINGLE_EGO_ID, 0.5),)))
+    assert isinstance(many, MultiObservation) and many.seq == 1
+    assert ask(session, MultiStep(1, (Command(SINGLE_EGO_ID, 0.5),))) == many  # a retry
+
+
+def test_steps_must_match_the_episode_kind(session: Session) -> None:
+    multi_started(session)
+    assert error_code(ask(session, Step(1, 0.5))) == ErrorCode.OUT_OF_ORDER
+    started(session)
+    reply = ask(session, MultiStep(1, (Command(SINGLE_EGO_ID, 0.5),)))
+    assert error_code(reply) == ErrorCode.OUT_OF_ORDER
+
+
+@pytest.mark.parametrize(
+    ("commands", "words"),
+    [
+        ((), "no command for 'ego'"),
+        ((Command("ego.7", 0.5),), "no running ego 'ego.7'; no command for 'ego'"),
+        ((Command(SINGLE_EGO_ID, 0.5), Command(SINGLE_EGO_ID, 1.0)), "a second command"),
+    ],
+)
+def test_commands_must_be_one_per_running_ego(
+    session: Session, commands: tuple[Command, ...], words: str
+) -> None:
+    multi_started(session)
+    reply = ask(session, MultiStep(1, commands))
+    assert error_code(reply) == ErrorCode.INVALID_MESSAGE
+    assert isinstance(reply, Error) and words in reply.message
+    assert isinstance(ask(session, MultiStep(1, (Command(SINGLE_EGO_ID, 0.5),))), MultiObservation)
+
+
+def test_a_bad_lane_change_in_a_command_is_named(session: Session) -> None:
+    multi_started(session)
+    reply = ask(session, MultiStep(1, (Command(SINGLE_EGO_ID, 0.5, 2),)))
+    assert isinstance(reply, Error) and reply.code == ErrorCode.INVALID_NUMBER
+    assert "commands[0].lane_change 2" in reply.message
+
+
+def test_a_one_ego_backend_refuses_more_egos(session: Session) -> None:
+    ask(session, Hello(PROTOCOL_VERSION))
+    reply = ask(session, Reset("cf", 1, {"egos": 3}))
+    assert isinstance(reply, Error) and reply.code == ErrorCode.INVALID_OPTION
+    assert "at most 1 ego" in reply.message
+
+
+def test_a_multi_ego_episode_ends_when_its_last_ego_ends(session: Session) -> None:
+    first = multi_started(session)
+    many = first
+    while not (many.terminated or many.truncated):
+        many = ask(session, MultiStep(many.seq + 1, (Command(SINGLE_EGO_ID, 0.0),)))
+        assert isinstance(many, MultiObservation)
+    assert many.truncated and many.egos[0].truncated and many.reason == "time_limit"
+    after = ask(session, MultiStep(many.seq + 1, (Command(SINGLE_EGO_ID, 0.0),)))
+    assert error_code(after) == ErrorCode.OUT_OF_ORDER
