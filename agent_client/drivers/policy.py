@@ -68,6 +68,7 @@ def save_policy(
         "policy": policy_state,
         "features": features.name,
         "lane_decision_every": lanes.every,
+        "lane_gap_rule": lanes.gap_rule,
         "acceleration_bounds": [scale.low, scale.high],
     }
     save_checkpoint(path, state)
@@ -78,6 +79,7 @@ def load_policy_driver(path: Path) -> PolicyDriver:
     state = load_checkpoint(path)
     low, high = state["acceleration_bounds"]
     every = int(state.get("lane_decision_every", 1))
+    gap_rule = bool(state.get("lane_gap_rule", False))  # off in files from before the rule
     policy = Policy.from_state_dict(state["policy"])
     features = FeatureMap(state["features"], lane_phase_every=every)
     if policy.obs_dim != features.dim:
@@ -86,5 +88,5 @@ def load_policy_driver(path: Path) -> PolicyDriver:
             f"{features.name!r} now has {features.dim} (the file was written by an older "
             "version): train it again"
         )
-    lanes = LaneChoice(policy.n_lane_actions, every)
+    lanes = LaneChoice(policy.n_lane_actions, every, gap_rule)
     return PolicyDriver(policy, features, ActionScale(low, high), lanes)

@@ -1,7 +1,10 @@
 """The lane choice: which of keep / left / right can happen, and when a lane decision is taken.
 
 A choice that cannot happen is masked, not learned away: a lane that does not exist, or any
-change while one is under way (`Ego.changing_lane`, protocol 1.1). A lane decision is taken at
+change while one is under way (`Ego.changing_lane`, protocol 1.1), and (with `gap_rule`) a change
+into a gap the observation already shows too small for a safe change: shorter than a safe
+driver's secure gap, the reaction distance plus the difference of the braking distances, to the
+new leader and from the new follower (`secure_gap`). A lane decision is taken at
 every `every`-th decision only (the observation's `seq` says which), so that a lane change is a
 decision and not a request repeated every 0.1 s; in between only "keep" is allowed. The masks
 come from the observation alone, so a saved policy drives with the same rule it learned with.
@@ -19,6 +22,35 @@ LANE_COMMANDS = (0, 1, -1)
 """Lane choice index -> lane-change command: keep, left, right."""
 KEEP_ONLY = np.array([True])
 
+SAFE_REACTION_S = 1.0
+"""s: the reaction time of the secure gap (IDM's and Krauss' usual 1 s headway)."""
+SAFE_DECELERATION = 4.5
+"""m/s^2: the braking of the secure gap, a passenger car's comfortable maximum."""
+SAFE_STANDSTILL_M = 2.5
+"""m: the gap left at standstill (a typical minimum gap)."""
+
+
+def secure_gap(follower_speed: float, leader_speed: float) -> float:
+    """The net gap (m) a follower at `follower_speed` needs behind a leader at `leader_speed` to
+    be able to brake in time: standstill gap + reaction distance + braking distance difference."""
+    braking = (follower_speed**2 - leader_speed**2) / (2 * SAFE_DECELERATION)
+    return SAFE_STANDSTILL_M + follower_speed * SAFE_REACTION_S + max(0.0, braking)
+
+
+def gap_is_safe(obs: Observation, direction: int) -> bool:
+    """Whether the gap in the lane on side `direction` (1 left, -1 right) is not visibly too
+    small: the ego behind the new leader, and the new follower behind the ego."""
+    near = obs.neighbours
+    lead, lag = (
+        (near.left_leader, near.left_follower)
+        if direction > 0
+        else (near.right_leader, near.right_follower)
+    )
+    speed = obs.ego.speed
+    if lead.present and lead.gap < secure_gap(speed, lead.speed):
+        return False
+    return not (lag.present and lag.gap < secure_gap(lag.speed, speed))
+
 
 @dataclass(frozen=True)
 class LaneChoice:
@@ -27,6 +59,8 @@ class LaneChoice:
     n_choices: int = 1
     every: int = 1
     """A lane decision at every `every`-th decision (1: at each)."""
+    gap_rule: bool = False
+    """Mask changes into gaps shorter than the `secure_gap` (policies from before it: off)."""
 
     def __post_init__(self) -> None:
         if self.n_choices not in (1, 3):
@@ -48,7 +82,12 @@ class LaneChoice:
             return KEEP_ONLY
         ego = obs.ego
         free = ego.changing_lane == 0 and self.due(obs)
-        return np.array([True, free and ego.lane + 1 < ego.lane_count, free and ego.lane > 0])
+        left = free and ego.lane + 1 < ego.lane_count
+        right = free and ego.lane > 0
+        if self.gap_rule:
+            left = left and gap_is_safe(obs, 1)
+            right = right and gap_is_safe(obs, -1)
+        return np.array([True, left, right])
 
 
 def lane_phase(seq: int, every: int) -> float:

@@ -65,6 +65,9 @@ class TrainConfig:
     """Seconds between two lane decisions (rounded to whole decisions, at least one): in
     between, the policy only chooses the acceleration. A lane change is a decision, not a
     request repeated every 0.1 s (docs/learner.md)."""
+    lane_gap_rule: bool = True
+    """Mask lane changes into gaps the observation shows shorter than a safe driver's secure
+    gap (`agent_client.rl.lanes.secure_gap`): asked for only when they can happen."""
     scenario_options: dict[str, Any] = field(default_factory=dict)
     """Extra scenario options sent with every reset (e.g. flow)."""
     warmup_policy: str = "idm"

@@ -231,6 +231,7 @@ def ray_collector(
         lane_phase_every=features.lane_phase_every,
         n_lanes=lanes.n_choices,
         lane_every=lanes.every,
+        lane_gap_rule=lanes.gap_rule,
         noise=learner.noise,
         noise_sigma=learner.noise_sigma,
         noise_theta=learner.noise_theta,

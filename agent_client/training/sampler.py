@@ -49,6 +49,7 @@ class WorkerSpec:
     lane_phase_every: int
     n_lanes: int
     lane_every: int
+    lane_gap_rule: bool
     noise: str
     noise_sigma: float
     noise_theta: float
@@ -141,7 +142,7 @@ class SamplingWorker:
             **spec.options,
         )  # fmt: skip
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
-        lanes = LaneChoice(spec.n_lanes, spec.lane_every)
+        lanes = LaneChoice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule)
         scale = ActionScale.from_schema(self.env.welcome.action)
         self.exploration = Exploration(spec, scale, spec.seed + 7919 * (index + 1))
         self._seeds = (first_seed + index + stride * k for k in range(2**31))

@@ -129,7 +129,7 @@ class Trainer:
         lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
         every = config.lane_decision_every if lane_change else 1
         self.features = FeatureMap(features, lane_phase_every=every)
-        self.lanes = LaneChoice(3 if lane_change else 1, every)
+        self.lanes = LaneChoice(3 if lane_change else 1, every, config.lane_gap_rule)
         self.scale = ActionScale.from_schema(self.env.welcome.action)
         self.agent = Agent(
             self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs

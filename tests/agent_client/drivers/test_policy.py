@@ -9,6 +9,7 @@ import pytest
 
 from agent_client.drivers.policy import ActionScale, load_policy_driver, save_policy
 from agent_client.drivers.spec import training_settings
+from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap, FeatureMismatch
 from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.td3 import Agent, TD3Config
@@ -26,9 +27,9 @@ def test_action_scale_maps_tanh_onto_asymmetric_bounds() -> None:
     assert scale.to_policy(10.0) == 1.0
 
 
-@pytest.mark.parametrize("every", [1, 10])
-def test_a_saved_policy_drives_like_the_agent(tmp_path: Path, every: int) -> None:
-    features, lanes = FeatureMap("lc", lane_phase_every=every), LaneChoice(3, every)
+@pytest.mark.parametrize(("every", "gap_rule"), [(1, False), (10, True)])
+def test_a_saved_policy_drives_like_the_agent(tmp_path: Path, every: int, gap_rule: bool) -> None:
+    features, lanes = FeatureMap("lc", lane_phase_every=every), LaneChoice(3, every, gap_rule)
     agent = Agent(features.dim, 3, TD3Config(compile=False), seed=3)
     scale = ActionScale(-6.0, 3.0)
     save_policy(tmp_path / "policy.pt", agent.policy_state_dict(), features, scale, lanes)
@@ -74,3 +75,13 @@ def test_training_settings_come_from_the_run_folder(tmp_path: Path) -> None:
     )
     assert training_settings("idm") == (None, {})
     assert training_settings(str(tmp_path / "elsewhere" / "policy.pt")) == (None, {})
+
+
+def test_a_policy_saved_before_the_gap_rule_drives_without_it(tmp_path: Path) -> None:
+    features, lanes = FeatureMap("lc"), LaneChoice(3)
+    agent = Agent(features.dim, 3, TD3Config(compile=False), seed=3)
+    save_policy(tmp_path / "p.pt", agent.policy_state_dict(), features, ActionScale(-6, 3), lanes)
+    state = load_checkpoint(tmp_path / "p.pt")
+    del state["lane_gap_rule"]  # as written by an older version
+    save_checkpoint(tmp_path / "old.pt", state)
+    assert not load_policy_driver(tmp_path / "old.pt").lanes.gap_rule

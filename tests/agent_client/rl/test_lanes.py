@@ -6,8 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice, choose_lanes
-from protocol.messages import Ego
+from agent_client.rl.lanes import (
+    LANE_COMMANDS,
+    SAFE_STANDSTILL_M,
+    LaneChoice,
+    choose_lanes,
+    secure_gap,
+)
+from protocol.messages import Ego, Neighbour, Neighbours
 from tests.protocol.test_codec import make_observation
 
 
@@ -58,3 +64,41 @@ def test_choose_lanes_takes_the_best_valid_choice_and_explores_only_valid_ones()
     rng = np.random.default_rng(0)
     explored = np.array([choose_lanes(q, valid, 1.0, rng) for _ in range(200)])
     assert set(explored[:, 0]) == {0, 2} and set(explored[:, 1]) == {0, 1}
+
+
+def near(gap: float, speed: float) -> Neighbour:
+    return Neighbour(True, gap, 3.2, speed, "v")
+
+
+ABSENT = Neighbour(False, 200.0, 0.0, 0.0)
+
+
+def sides(**slots: Neighbour) -> Neighbours:
+    names = ("left_leader", "left_follower", "leader", "follower", "right_leader", "right_follower")
+    return Neighbours(**{name: slots.get(name, ABSENT) for name in names})
+
+
+def test_the_secure_gap_is_standstill_reaction_and_braking_difference() -> None:
+    assert secure_gap(0.0, 0.0) == SAFE_STANDSTILL_M
+    assert secure_gap(20.0, 20.0) == pytest.approx(2.5 + 20.0)  # same speed: no braking term
+    assert secure_gap(20.0, 10.0) == pytest.approx(2.5 + 20.0 + (400 - 100) / 9.0)
+    assert secure_gap(10.0, 20.0) == pytest.approx(2.5 + 10.0)  # a faster leader: none
+
+
+@pytest.mark.parametrize(
+    ("slots", "expected"),
+    [
+        ({}, [True, True, True]),  # empty lanes either side
+        ({"left_leader": near(10.0, 20.0)}, [True, False, True]),  # 10 m < 22.5 m ahead
+        ({"left_leader": near(60.0, 15.0)}, [True, True, True]),
+        ({"right_follower": near(15.0, 25.0)}, [True, True, False]),  # a fast car behind
+        ({"right_follower": near(80.0, 25.0)}, [True, True, True]),
+        ({"left_follower": near(5.0, 5.0), "right_leader": near(5.0, 30.0)}, [True, False, False]),
+    ],
+)
+def test_the_gap_rule_masks_changes_into_gaps_visibly_too_small(
+    slots: dict[str, Neighbour], expected: list[bool]
+) -> None:
+    obs = make_observation(ego=ego(1), neighbours=sides(**slots))  # the ego at 20 m/s
+    assert LaneChoice(3, gap_rule=True).mask(obs).tolist() == expected
+    assert LaneChoice(3).mask(obs).tolist() == [True, True, True]  # without it: the road only
