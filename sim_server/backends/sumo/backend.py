@@ -14,6 +14,12 @@ arrival, so a crash at the end of the road is still a crash.
 
 On the ``ring`` every vehicle is placed at reset: the ego is one of the human drivers during the
 warm-up and is handed to the client (its type switched to the ego's) when the warm-up ends.
+
+A reset that names ``egos`` (protocol 1.4, `reset_many` / `step_many`) drives several egos in
+one simulation, ``ego.0``, ``ego.1``, ...: on the ring they are slots spread evenly round it, on
+the roads they enter one after another after the warm-up and are handed over together once the
+last has entered. Each is judged alone (`egos.EgoState`): an ego whose drive ends is reported
+once and taken out, the others go on (docs/backends.md, "Many egos in one SUMO simulation").
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from protocol.messages import (
     EndReason,
     Events,
     LeaderTrip,
+    MultiObservation,
     Neighbour,
     Neighbours,
     Observation,
@@ -43,8 +50,8 @@ from protocol.messages import (
     ScenarioInfo,
     Traffic,
 )
-from sim_server.backends.base import Backend
-from sim_server.backends.options import EpisodeOptions, TrafficOptions
+from sim_server.backends.base import Backend, Commands
+from sim_server.backends.options import MAX_EGOS, EpisodeOptions, TrafficOptions, invalid_option
 from sim_server.backends.rules import (
     EndRule,
     LaneChangeUnderWay,
@@ -53,6 +60,14 @@ from sim_server.backends.rules import (
     limit_acceleration,
 )
 from sim_server.backends.sumo import ssm
+from sim_server.backends.sumo.egos import (
+    Drive,
+    EgoState,
+    collision_partner,
+    collision_partners,
+    ego_ids,
+    multi_observation,
+)
 from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
 from sim_server.backends.sumo.scenarios import (
     BUILTIN_SCENARIOS,
@@ -89,23 +104,23 @@ _FORCED_ARGS = [
 ]  # fmt: skip
 
 _ABSENT = Neighbour(present=False, gap=0.0, lateral=0.0, speed=0.0)
-_QUIET = Events()
-"""The events of most steps (nothing happened); immutable, so shared."""
 
 
 @dataclass
 class _Episode:
-    """Book-keeping of the running episode."""
+    """Book-keeping of the running episode (each ego's own in `egos`)."""
 
     dt: float
     substeps: int
     options: EpisodeOptions
     measures: MeasureOptions
-    end: EndRule
-    entry_offset: float
+    egos: list[EgoState]
+    """The egos still driving, in the order they entered (one-ego episode: the one ego)."""
     route_length: float
     leader_id: str
     leader_depart: float
+    many: bool = False
+    """A multi-ego episode (`reset_many`): stepped by `step_many`, no ceiling, no SSM."""
     leader_arrival: float | None = None
     sumo_drives: bool = False
     one_way: bool = False
@@ -113,16 +128,22 @@ class _Episode:
     curved: bool = False
     """The ring: one curved lane, where an offset across the ego's heading would be the
     curvature's; neighbours' `lateral` is 0 there."""
-    lane_change: LaneChangeUnderWay | None = None
     done: bool = False
-    last: Observation | None = None
-    ego_min_gap: float = 0.0
     lanes: dict[str, tuple[int, int]] = field(default_factory=dict)
     """Lane id -> (its index, the lane count of its edge): neither changes during a run."""
     min_gaps: dict[str, float] = field(default_factory=dict)
     """Vehicle id -> its minGap (fixed by its type)."""
     ssm_log: Path | None = None
     """Where SUMO's SSM device logs the ego's conflicts (reset option ``ssm``)."""
+
+    ego: EgoState = field(init=False)
+    """The one ego of a one-ego episode (the first of a multi-ego one)."""
+    ids: frozenset[str] = field(init=False)
+    """Every ego of the episode, running or not: none of them is `traffic`."""
+
+    def __post_init__(self) -> None:
+        self.ego = self.egos[0]
+        self.ids = frozenset(e.id for e in self.egos)
 
 
 class SumoBackend(Backend):
@@ -191,28 +212,71 @@ class SumoBackend(Backend):
 
     # ----------------------------------------------------------------------- reset
 
+    max_egos = MAX_EGOS
+
     def reset(self, scenario: str, seed: int, options: dict[str, OptionValue]) -> Observation:
+        (first,) = self._start(scenario, seed, options, (EGO_ID,), many=False)
+        return first
+
+    def reset_many(
+        self, scenario: str, seed: int, options: dict[str, OptionValue], egos: int
+    ) -> MultiObservation:
+        """Start an episode with `egos` egos ``ego.0``, ``ego.1``, ... (seq 0): on the ring,
+        slots spread evenly round it; on the roads, entered one after another after the warm-up
+        (the reset returns once all have entered, each within ``insertion_timeout``)."""
+        if not 1 <= egos <= self.max_egos:
+            raise invalid_option(f"option egos must be within 1..{self.max_egos}, got {egos}")
+        ids = ego_ids(egos)
+        first = self._start(scenario, seed, options, ids, many=True)
+        episode = self._episode
+        assert episode is not None
+        try:
+            traffic = self._traffic(episode)
+        except self._errors as exc:
+            self._broken(exc)
+            raise BackendError(
+                ErrorCode.SIMULATOR_ERROR, f"SUMO failed during reset: {exc}"
+            ) from exc
+        reported = zip(ids, first, strict=True)
+        return multi_observation(0, first[0].time, reported, False, "", traffic)
+
+    def _start(
+        self,
+        scenario: str,
+        seed: int,
+        options: dict[str, OptionValue],
+        ids: tuple[str, ...],
+        *,
+        many: bool,
+    ) -> list[Observation]:
+        """Load the scenario and hand the egos `ids` over; their seq-0 observations (`many`:
+        without traffic, which the multi-ego reply carries once)."""
         chosen = self._scenarios[scenario]
         episode_options = EpisodeOptions.parse(options)
         traffic = TrafficOptions.parse(options) if isinstance(chosen, RoadScenario) else None
         layout = RingOptions.parse(options) if isinstance(chosen, RingScenario) else None
         measures = MeasureOptions.parse(options)
+        slots = layout.ego_slots(len(ids)) if layout is not None else ()
+        if many and measures.ssm:
+            raise invalid_option(
+                "option ssm is not offered with egos: a multi_observation carries no safety"
+            )
         self._episode = None
         try:
-            config, route = self._files(chosen, traffic or layout)
+            config, route = self._files(chosen, traffic or layout, slots)
             log = self._new_ssm_log() if measures.ssm else None
             device = ssm.device_args(EGO_ID, log) if log is not None else []
             self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS, *device])
             self._drop_old_logs(keep=log)
             if layout is not None:
-                first = self._place_ego(layout, episode_options, measures)
+                first = self._place_egos(layout, slots, ids, episode_options, measures, many)
             else:
-                first = self._insert_ego(
-                    route, episode_options, measures, one_way=traffic is not None
+                first = self._insert_egos(
+                    route, ids, episode_options, measures, one_way=traffic is not None, many=many
                 )
             assert self._episode is not None
             self._episode.ssm_log = log
-            self._sumo.ego_ready(self._api, EGO_ID)
+            self._sumo.ego_ready(self._api, ids[0])
             return first
         except self._errors as exc:
             self._broken(exc)
@@ -221,16 +285,20 @@ class SumoBackend(Backend):
             ) from exc
 
     def _files(
-        self, scenario: Scenario, parsed: TrafficOptions | RingOptions | None
+        self,
+        scenario: Scenario,
+        parsed: TrafficOptions | RingOptions | None,
+        ego_slots: tuple[int, ...] = (0,),
     ) -> tuple[Path, str]:
-        """The scenario's .sumocfg (a built-in one built from its `parsed` options) and the
-        ego's route (the ring's ego is placed by `_place_ego` instead)."""
+        """The scenario's .sumocfg (a built-in one built from its `parsed` options; the ring's
+        humans leave `ego_slots` free) and the egos' route (the ring's egos are placed by
+        `_place_egos` instead)."""
         if isinstance(scenario, CustomScenario):
             return scenario.sumocfg, scenario.ego_route
         try:
             if isinstance(scenario, RingScenario):
                 assert isinstance(parsed, RingOptions)
-                return build_ring(scenario, parsed, self._cache_dir), ""
+                return build_ring(scenario, parsed, self._cache_dir, ego_slots), ""
             assert isinstance(parsed, TrafficOptions)
             return build_road(scenario, parsed, self._cache_dir), EGO_ROUTE
         except (OSError, RuntimeError) as exc:
@@ -250,85 +318,125 @@ class SumoBackend(Backend):
         self._running = True
         self._loads = 0
 
-    def _insert_ego(
-        self, route: str, options: EpisodeOptions, measures: MeasureOptions, one_way: bool
-    ) -> Observation:
-        """Warm up, insert the ego at the start of `route` and observe it (seq 0)."""
+    def _insert_egos(
+        self,
+        route: str,
+        ids: tuple[str, ...],
+        options: EpisodeOptions,
+        measures: MeasureOptions,
+        *,
+        one_way: bool,
+        many: bool,
+    ) -> list[Observation]:
+        """Warm up, insert the egos one after another at the start of `route` (each as soon as
+        SUMO can) and observe them (seq 0). An ego waiting for the next to enter is driven by
+        SUMO with its safety checks on; they all go off at the hand-over, when the last has
+        entered. The leader-at-entry (the ceiling) is the one ego's only."""
         api = self._api
         dt = api.simulation.getDeltaT()
         substeps = options.steps_per_decision(dt)
         api.simulationStep(api.simulation.getTime() + options.warmup)
-        self._add_ego(route, options.simulator_drives)
-        self._wait_for_entry(options.insertion_timeout)
-        edges = api.vehicle.getRoute(EGO_ID)
+        offsets = []
+        for k, ego_id in enumerate(ids):
+            last = k == len(ids) - 1
+            self._add_ego(ego_id, route, options.simulator_drives, checks_off=last)
+            self._wait_for_entry(ego_id, options.insertion_timeout, ids[:k])
+            offsets.append(api.vehicle.getLanePosition(ego_id))
+        if not options.simulator_drives:
+            for ego_id in ids[:-1]:
+                api.vehicle.setSpeedMode(ego_id, SPEED_MODE_NO_CHECKS)
+        first = ids[0]
+        edges = api.vehicle.getRoute(first)
         route_length = sum(api.lane.getLength(f"{edge}_0") for edge in edges)
-        leader_id, _ = api.vehicle.getLeader(EGO_ID, route_length) or ("", 0.0)
-        self._episode = _Episode(
+        leader_id = "" if many else (api.vehicle.getLeader(first, route_length) or ("", 0.0))[0]
+        entry_time = api.simulation.getTime()
+        egos = [
+            EgoState(ego_id, EndRule(options, entry_time), offset, api.vehicle.getMinGap(ego_id))
+            for ego_id, offset in zip(ids, offsets, strict=True)
+        ]
+        self._episode = episode = _Episode(
             dt=dt,
             substeps=substeps,
             options=options,
             measures=measures,
-            end=EndRule(options, entry_time=api.simulation.getTime()),
-            entry_offset=api.vehicle.getLanePosition(EGO_ID),
+            egos=egos,
             route_length=route_length,
             leader_id=leader_id,
             leader_depart=api.vehicle.getDeparture(leader_id) if leader_id else math.nan,
+            many=many,
             sumo_drives=options.simulator_drives,
             one_way=one_way,
-            ego_min_gap=api.vehicle.getMinGap(EGO_ID),
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
-        return self._observe(self._episode, 0, Events(), action)
+        return [self._observe(episode, ego, 0, Events(), action, not many) for ego in egos]
 
-    def _place_ego(
-        self, layout: RingOptions, options: EpisodeOptions, measures: MeasureOptions
-    ) -> Observation:
-        """The ring: the ego joins the humans in slot 0, drives as one of them through the
-        warm-up, and is handed over at its end (seq 0)."""
+    def _place_egos(
+        self,
+        layout: RingOptions,
+        slots: tuple[int, ...],
+        ids: tuple[str, ...],
+        options: EpisodeOptions,
+        measures: MeasureOptions,
+        many: bool,
+    ) -> list[Observation]:
+        """The ring: the egos join the humans in their `slots`, drive as humans through the
+        warm-up, and are handed over at its end (seq 0)."""
         api = self._api
         dt = api.simulation.getDeltaT()
         substeps = options.steps_per_decision(dt)
-        route, position = layout.slot(0)
-        api.vehicle.add(
-            EGO_ID, route, typeID=HUMAN_TYPE, depart="now",
-            departLane="0", departPos=f"{position:.3f}", departSpeed="0",
-        )  # fmt: skip
+        for ego_id, slot in zip(ids, slots, strict=True):
+            route, position = layout.slot(slot)
+            api.vehicle.add(
+                ego_id, route, typeID=HUMAN_TYPE, depart="now",
+                departLane="0", departPos=f"{position:.3f}", departSpeed="0",
+            )  # fmt: skip
         api.simulationStep()  # everyone enters in this first step, or the ring is refused
-        self._check_ring_entry(layout.vehicles)
+        self._check_ring_entry(layout.vehicles, ids)
         api.simulationStep(max(options.warmup, api.simulation.getTime()))
         if not options.simulator_drives:
-            api.vehicle.setType(EGO_ID, EGO_TYPE)
-            api.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
-            api.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
-        self._episode = _Episode(
+            for ego_id in ids:
+                api.vehicle.setType(ego_id, EGO_TYPE)
+                api.vehicle.setSpeedMode(ego_id, SPEED_MODE_NO_CHECKS)
+                api.vehicle.setLaneChangeMode(ego_id, LANE_CHANGE_MODE_REQUESTS_ONLY)
+        entry_time = api.simulation.getTime()
+        egos = [
+            EgoState(
+                ego_id,
+                EndRule(options, entry_time),
+                layout.ring_position(slot),
+                api.vehicle.getMinGap(ego_id),
+            )
+            for ego_id, slot in zip(ids, slots, strict=True)
+        ]
+        self._episode = episode = _Episode(
             dt=dt,
             substeps=substeps,
             options=options,
             measures=measures,
-            end=EndRule(options, entry_time=api.simulation.getTime()),
-            entry_offset=layout.ring_position(0),
+            egos=egos,
             route_length=layout.laps() * layout.ring_length,
             leader_id="",  # nobody arrives on a ring: no leader-at-entry trip (ceiling nil)
             leader_depart=math.nan,
+            many=many,
             sumo_drives=options.simulator_drives,
             one_way=True,
             curved=True,
-            ego_min_gap=api.vehicle.getMinGap(EGO_ID),
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
-        return self._observe(self._episode, 0, Events(), action)
+        return [self._observe(episode, ego, 0, Events(), action, not many) for ego in egos]
 
-    def _check_ring_entry(self, vehicles: int) -> None:
+    def _check_ring_entry(self, vehicles: int, ids: tuple[str, ...]) -> None:
         """Every vehicle of the ring entered in the first step (placed, so they must)."""
         entered = self._api.simulation.getDepartedIDList()
-        if EGO_ID not in entered or len(entered) != vehicles:
+        if len(entered) != vehicles or not set(entered).issuperset(ids):
             raise BackendError(
                 ErrorCode.INSERTION_FAILED,
                 f"only {len(entered)} of the ring's {vehicles} vehicles could be placed",
             )
 
-    def _add_ego(self, route: str, sumo_drives: bool) -> None:
-        """Ask SUMO to insert the ego now: the client's (SUMO's checks off) or a human."""
+    def _add_ego(self, ego_id: str, route: str, sumo_drives: bool, checks_off: bool) -> None:
+        """Ask SUMO to insert an ego now: the client's (SUMO's own lane changes off, its safety
+        checks too if `checks_off`, else at the hand-over) or a human."""
         api = self._api
         types = api.vehicletype.getIDList()
         if sumo_drives:  # a human driver of the scenario, driven by SUMO, observed by the client
@@ -338,26 +446,39 @@ class SumoBackend(Backend):
             if EGO_TYPE not in types:
                 self._define_ego_type()
         api.vehicle.add(
-            EGO_ID, route, typeID=type_id, depart="now",
+            ego_id, route, typeID=type_id, depart="now",
             departLane="random", departPos="base", departSpeed="max",
         )  # fmt: skip
         if not sumo_drives:
-            api.vehicle.setSpeedMode(EGO_ID, SPEED_MODE_NO_CHECKS)
-            api.vehicle.setLaneChangeMode(EGO_ID, LANE_CHANGE_MODE_REQUESTS_ONLY)
+            if checks_off:
+                api.vehicle.setSpeedMode(ego_id, SPEED_MODE_NO_CHECKS)
+            api.vehicle.setLaneChangeMode(ego_id, LANE_CHANGE_MODE_REQUESTS_ONLY)
 
-    def _wait_for_entry(self, timeout: float) -> None:
-        """Step until the ego has entered; give up after `timeout` s of simulation."""
+    def _wait_for_entry(self, ego_id: str, timeout: float, entered: tuple[str, ...]) -> None:
+        """Step until `ego_id` has entered; give up after `timeout` s of simulation, or when an
+        ego that `entered` before it reaches the end of the road meanwhile."""
         api = self._api
         deadline = api.simulation.getTime() + timeout
-        while EGO_ID not in api.simulation.getDepartedIDList():
+        while ego_id not in api.simulation.getDepartedIDList():
             if api.simulation.getTime() >= deadline:
-                api.vehicle.remove(EGO_ID)
+                api.vehicle.remove(ego_id)
+                who = "the ego" if ego_id == EGO_ID else ego_id
                 raise BackendError(
                     ErrorCode.INSERTION_FAILED,
-                    f"the ego could not enter within {timeout} s "
+                    f"{who} could not enter within {timeout} s "
                     "(road too full at the entry); try a lower flow or another seed",
                 )
             api.simulationStep()
+            if entered:
+                arrived = api.simulation.getArrivedIDList()
+                gone = next((e for e in entered if e in arrived), None)
+                if gone is not None:
+                    api.vehicle.remove(ego_id)
+                    raise BackendError(
+                        ErrorCode.INSERTION_FAILED,
+                        f"{gone} reached the end of the road before {ego_id} could enter: ask "
+                        "for fewer egos, a lower flow, or use the ring",
+                    )
 
     def _define_ego_type(self) -> None:
         """A user's .sumocfg has no ego type: derive one like the built-in scenarios'."""
@@ -376,6 +497,10 @@ class SumoBackend(Backend):
         episode = self._episode
         if episode is None or episode.done:
             raise BackendError(ErrorCode.OUT_OF_ORDER, "no running episode: send reset first")
+        if episode.many:
+            raise BackendError(
+                ErrorCode.OUT_OF_ORDER, "step in an episode of several egos: send multi_step"
+            )
         try:
             return self._step(episode, seq, acceleration, lane_change)
         except self._errors as exc:
@@ -385,158 +510,294 @@ class SumoBackend(Backend):
             ) from exc
 
     def _step(self, episode: _Episode, seq: int, request: float, lane_change: int) -> Observation:
-        refused = self._lane_change_refusal(episode, lane_change) if lane_change else ""
+        ego = episode.ego
+        drive = self._decide(episode, ego, request, lane_change)
+        self._drive(episode, drive)
+        self._sumo.stepped(self._api, ego.id)
+        action, events = drive.outcome()
+        obs = self._judge(episode, ego, seq, events, action)
+        return self._finish(episode, obs) if obs.reason else obs
+
+    def _decide(self, episode: _Episode, ego: EgoState, request: float, lane_change: int) -> Drive:
+        """One ego's command, its lane change judged (and started) before the simulation
+        steps."""
+        refused = self._lane_change_refusal(episode, ego, lane_change) if lane_change else ""
         started = bool(lane_change) and not refused
         if started:
-            self._start_lane_change(episode, lane_change)
-        action, events = self._drive(episode, request, lane_change, refused, started)
-        self._sumo.stepped(self._api, EGO_ID)
-        return self._conclude(episode, seq, events, action)
+            self._start_lane_change(episode, ego, lane_change)
+        return Drive(ego, request, lane_change, refused, started)
 
-    def _lane_change_refusal(self, episode: _Episode, direction: int) -> str:
+    def _lane_change_refusal(self, episode: _Episode, ego: EgoState, direction: int) -> str:
+        could_change = self._api.vehicle.couldChangeLane
         return lane_change_refusal(
             direction,
             simulator_drives=episode.sumo_drives,
-            under_way=episode.lane_change,
-            ego_lane=lambda: self._lane(episode),
-            gap_ok=self._could_change_lane,
+            under_way=ego.lane_change,
+            ego_lane=lambda: self._lane(episode, ego.id),
+            # SUMO's own gap check of a requested change (lane-change mode 512 keeps it)
+            gap_ok=lambda side: bool(could_change(ego.id, side)),
         )
 
-    def _could_change_lane(self, direction: int) -> bool:
-        """SUMO's own gap check of a requested change (lane-change mode 512 keeps it)."""
-        return bool(self._api.vehicle.couldChangeLane(EGO_ID, direction))
-
-    def _start_lane_change(self, episode: _Episode, direction: int) -> None:
+    def _start_lane_change(self, episode: _Episode, ego: EgoState, direction: int) -> None:
         """Ask SUMO for the change: the request stands for 2 s, the manoeuvre takes 2 s
         (``--lanechange.duration``)."""
-        target = self._lane(episode)[0] + direction
-        self._api.vehicle.changeLane(EGO_ID, target, 2.0)
+        target = self._lane(episode, ego.id)[0] + direction
+        self._api.vehicle.changeLane(ego.id, target, 2.0)
         now = self._api.simulation.getTime()
-        episode.lane_change = LaneChangeUnderWay(target, direction, now)
+        ego.lane_change = LaneChangeUnderWay(target, direction, now)
 
-    def _drive(
-        self, episode: _Episode, request: float, lane_change: int, refused: str, started: bool
-    ) -> tuple[AppliedAction, Events]:
+    def _drive(self, episode: _Episode, drive: Drive) -> None:
         """Run the decision's simulation steps; stop early at a collision or the ego's arrival."""
-        api = self._api
-        applied_total, limited_by = 0.0, ""
-        collision_with, end_of_road, teleported = "", False, False
-        completed = aborted = False
-        substeps_done = 0
+        simulation = self._api.simulation
+        ego = drive.ego
+        ego_id = ego.id
         for _ in range(episode.substeps):
-            applied, why = self._substep(episode, request)
-            applied_total += applied
-            limited_by = limited_by or why
-            substeps_done += 1
-            collision_with = _collision_partner(api.simulation.getCollisions())
-            arrived = api.simulation.getArrivedIDList()
+            applied, why = self._substep(episode, ego_id, drive.request)
+            drive.applied(applied, why)
+            drive.collision_with = collision_partner(simulation.getCollisions(), ego_id)
+            arrived = simulation.getArrivedIDList()
             if episode.leader_arrival is None and episode.leader_id in arrived:
-                episode.leader_arrival = api.simulation.getTime()
-            teleported = teleported or EGO_ID in api.simulation.getStartingTeleportIDList()
-            if collision_with:
+                episode.leader_arrival = simulation.getTime()
+            drive.teleported = drive.teleported or ego_id in simulation.getStartingTeleportIDList()
+            if drive.collision_with:
                 break
-            if EGO_ID in arrived:
-                end_of_road = True
+            if ego_id in arrived:
+                drive.end_of_road = True
                 break
-            if episode.lane_change is not None:
-                completed, aborted = self._lane_change_progress(episode, episode.lane_change)
-        action = AppliedAction(
-            requested_acceleration=request,
-            requested_lane_change=lane_change,
-            acceleration=applied_total / substeps_done,
-            lane_change=0 if refused else lane_change,
-            acceleration_limited_by=limited_by,
-            lane_change_refused=refused,
-        )
-        events = (
-            Events(
-                collision=bool(collision_with),
-                collision_with=collision_with,
-                end_of_road=end_of_road,
-                lane_change_started=started,
-                lane_change_completed=completed,
-                lane_change_refused=bool(refused),
-                teleported=teleported,
-                lane_change_aborted=aborted,
-            )
-            if any((collision_with, end_of_road, started, completed, aborted, refused, teleported))
-            else _QUIET
-        )
-        return action, events
+            if ego.lane_change is not None:
+                drive.completed, drive.aborted = self._lane_change_progress(ego, ego.lane_change)
 
-    def _substep(self, episode: _Episode, request: float) -> tuple[float, str]:
+    def _substep(self, episode: _Episode, ego_id: str, request: float) -> tuple[float, str]:
         """One simulation step: the applied acceleration and what limited it ("" nothing)."""
         api = self._api
         if episode.sumo_drives:
             api.simulationStep()
-            gone = EGO_ID in api.simulation.getArrivedIDList()
-            return 0.0 if gone else api.vehicle.getAcceleration(EGO_ID), AccelerationLimit.SIMULATOR
-        vehicle = api.vehicle
+            gone = ego_id in api.simulation.getArrivedIDList()
+            return 0.0 if gone else api.vehicle.getAcceleration(ego_id), AccelerationLimit.SIMULATOR
+        applied, why = self._apply(episode, ego_id, request)
+        api.simulationStep()
+        return applied, why
+
+    def _apply(self, episode: _Episode, ego_id: str, request: float) -> tuple[float, str]:
+        """Set the ego's acceleration for the next simulation step, limited by the rules."""
+        vehicle = self._api.vehicle
         applied, why = limit_acceleration(
             request,
-            vehicle.getSpeed(EGO_ID),
-            vehicle.getAllowedSpeed(EGO_ID),
+            vehicle.getSpeed(ego_id),
+            vehicle.getAllowedSpeed(ego_id),
             self.action_schema.acceleration_min,
             self.action_schema.acceleration_max,
             episode.dt,
         )
-        vehicle.setAcceleration(EGO_ID, applied, episode.dt)
-        api.simulationStep()
+        vehicle.setAcceleration(ego_id, applied, episode.dt)
         return applied, why
 
-    def _lane_change_progress(
-        self, episode: _Episode, change: LaneChangeUnderWay
-    ) -> tuple[bool, bool]:
+    def _lane_change_progress(self, ego: EgoState, change: LaneChangeUnderWay) -> tuple[bool, bool]:
         """(completed, aborted) of the lane change under way; either ends it."""
         vehicle = self._api.vehicle
         if (
-            vehicle.getLaneIndex(EGO_ID) == change.target
-            and abs(vehicle.getLateralLanePosition(EGO_ID)) < 1e-6
+            vehicle.getLaneIndex(ego.id) == change.target
+            and abs(vehicle.getLateralLanePosition(ego.id)) < 1e-6
         ):
-            episode.lane_change = None
+            ego.lane_change = None
             return True, False
         if change.expired(self._api.simulation.getTime()):
-            episode.lane_change = None
+            ego.lane_change = None
             return False, True
         return False, False
 
-    def _conclude(
-        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+    def _judge(
+        self,
+        episode: _Episode,
+        ego: EgoState,
+        seq: int,
+        events: Events,
+        action: AppliedAction,
+        traffic: bool = True,
     ) -> Observation:
-        """The observation after a step, the last one of the episode if a rule ends it."""
+        """The ego's observation after a step, the last one of its drive if a rule ends it."""
         if events.end_of_road:
-            arrival = self._arrival_observation(episode, seq, events, action)
-            return self._finish(episode, ended(arrival, EndReason.END_OF_ROAD))
-        obs = None if events.teleported else self._observe_if_present(episode, seq, events, action)
+            arrival = self._arrival_observation(episode, ego, seq, events, action, traffic)
+            return ended(arrival, EndReason.END_OF_ROAD)
+        obs = (
+            None
+            if events.teleported
+            else self._observe_if_present(episode, ego, seq, events, action, traffic)
+        )
         if obs is None:  # gone without arriving
-            lost = self._arrival_observation(episode, seq, events, action)
-            return self._finish(episode, ended(lost, EndReason.EGO_LOST))
-        reason = episode.end.check(obs)
-        return obs if reason is None else self._finish(episode, ended(obs, reason))
+            lost = self._arrival_observation(episode, ego, seq, events, action, traffic)
+            return ended(lost, EndReason.EGO_LOST)
+        reason = ego.end.check(obs)
+        return obs if reason is None else ended(obs, reason)
 
     def _observe_if_present(
-        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+        self,
+        episode: _Episode,
+        ego: EgoState,
+        seq: int,
+        events: Events,
+        action: AppliedAction,
+        traffic: bool,
     ) -> Observation | None:
         """The observation, or None if the ego has left without arriving (its state cannot be
         read)."""
         try:
-            return self._observe(episode, seq, events, action)
+            return self._observe(episode, ego, seq, events, action, traffic)
         except self._errors:
-            if EGO_ID in self._api.vehicle.getIDList():
+            if ego.id in self._api.vehicle.getIDList():
                 raise
             return None
 
     def _finish(self, episode: _Episode, obs: Observation) -> Observation:
-        """End the episode: take the ego out and report the leader-at-entry's trip."""
+        """End the one-ego episode: take the ego out and report the leader-at-entry's trip."""
         api = self._api
         episode.done = True
-        if EGO_ID in api.vehicle.getIDList():
-            api.vehicle.remove(EGO_ID)
+        ego_id = episode.ego.id
+        if ego_id in api.vehicle.getIDList():
+            api.vehicle.remove(ego_id)
         if episode.options.report_ceiling:
             obs = replace(obs, ceiling=self._leader_trip(episode))
         if episode.ssm_log is not None:
             obs = replace(obs, safety=self._conflicts(episode, episode.ssm_log))
         return obs
+
+    # ----------------------------------------------------------------------- many egos
+
+    def step_many(self, seq: int, commands: Commands) -> MultiObservation:
+        """Apply every running ego's command in the same simulation steps; an ego whose drive
+        ends is reported once (at the simulation step where it ended) and taken out."""
+        episode = self._episode
+        if episode is None or episode.done:
+            raise BackendError(ErrorCode.OUT_OF_ORDER, "no running episode: send reset first")
+        if not episode.many:
+            return super().step_many(seq, commands)
+        try:
+            if len(commands) != len(episode.egos):
+                raise KeyError
+            requests = [commands[ego.id] for ego in episode.egos]
+        except KeyError:
+            running = ", ".join(ego.id for ego in episode.egos)
+            raise BackendError(
+                ErrorCode.INVALID_MESSAGE,
+                f"multi_step {seq}: commands for {', '.join(sorted(commands))}, running: {running}",
+            ) from None
+        try:
+            return self._step_many(episode, seq, requests)
+        except self._errors as exc:
+            self._broken(exc)
+            raise BackendError(
+                ErrorCode.SIMULATOR_ERROR, f"SUMO failed during step: {exc}"
+            ) from exc
+
+    def _step_many(
+        self, episode: _Episode, seq: int, requests: list[tuple[float, int]]
+    ) -> MultiObservation:
+        """`requests`: each running ego's (acceleration, lane change), in their order."""
+        decide = self._decide
+        drives = [
+            decide(episode, ego, acceleration, lane_change)
+            for ego, (acceleration, lane_change) in zip(episode.egos, requests, strict=True)
+        ]
+        finals = self._drive_many(episode, seq, drives)
+        self._sumo.stepped(self._api, drives[0].ego.id)
+        endings = list(finals.values())  # in the order the drives ended
+        reported: list[tuple[str, Observation]] = []
+        truncated = False
+        for drive in drives:
+            ego = drive.ego
+            obs = finals.get(ego.id) if finals else None
+            if obs is None:
+                action, events = drive.outcome()
+                obs = self._judge(episode, ego, seq, events, action, traffic=False)
+                if obs.reason:
+                    endings.append(obs)
+                    truncated = truncated or obs.truncated
+            reported.append((ego.id, obs))
+        if truncated:  # the time limit: every ego's at once
+            reported = [
+                (ego_id, obs if obs.reason else ended(obs, EndReason.TIME_LIMIT))
+                for ego_id, obs in reported
+            ]
+        traffic = self._traffic(episode)
+        if endings or truncated:
+            self._take_out(
+                [ego_id for ego_id, obs in reported if obs.reason and ego_id not in finals]
+            )
+            episode.egos = [
+                d.ego for d, (_, obs) in zip(drives, reported, strict=True) if not obs.reason
+            ]
+            episode.done = not episode.egos
+        time = self._api.simulation.getTime()
+        last = endings[-1].reason if endings and episode.done else ""
+        return multi_observation(seq, time, reported, truncated, last, traffic)
+
+    def _drive_many(
+        self, episode: _Episode, seq: int, drives: list[Drive]
+    ) -> dict[str, Observation]:
+        """Run the decision's simulation steps for every ego at once. An ego that collides or
+        arrives is judged at that simulation step and taken out; the others drive on (all
+        gone: the decision stops). Returns those egos' last observations, in the order their
+        drives ended."""
+        api = self._api
+        simulation, vehicle = api.simulation, api.vehicle
+        finals: dict[str, Observation] = {}
+        active = drives
+        for _ in range(episode.substeps):
+            if not episode.sumo_drives:
+                for drive in active:
+                    drive.applied(*self._apply(episode, drive.ego.id, drive.request))
+            api.simulationStep()
+            partners = collision_partners(simulation.getCollisions())
+            arrived = simulation.getArrivedIDList()
+            teleports = simulation.getStartingTeleportIDList()
+            if episode.sumo_drives:
+                for drive in active:
+                    gone = drive.ego.id in arrived
+                    acceleration = 0.0 if gone else vehicle.getAcceleration(drive.ego.id)
+                    drive.applied(acceleration, AccelerationLimit.SIMULATOR)
+            ending = [d for d in active if self._progress(d, partners, arrived, teleports)]
+            if ending:
+                for drive in ending:  # every one observed before any is taken out
+                    action, events = drive.outcome()
+                    finals[drive.ego.id] = self._judge(
+                        episode, drive.ego, seq, events, action, traffic=False
+                    )
+                self._take_out([d.ego.id for d in ending if not d.end_of_road])
+                active = [d for d in active if d.ego.id not in finals]
+                if not active:
+                    break
+        return finals
+
+    def _progress(
+        self, drive: Drive, partners: dict[str, str], arrived: Any, teleports: Any
+    ) -> bool:
+        """Record what one simulation step did to an ego; True if its drive ended in it (a
+        collision, its arrival)."""
+        ego = drive.ego
+        if teleports and ego.id in teleports:
+            drive.teleported = True
+        partner = partners.get(ego.id, "") if partners else ""
+        if partner:
+            drive.collision_with = partner
+            return True
+        if ego.id in arrived:
+            drive.end_of_road = True
+            return True
+        if ego.lane_change is not None:
+            drive.completed, drive.aborted = self._lane_change_progress(ego, ego.lane_change)
+        return False
+
+    def _take_out(self, ego_ids: list[str]) -> None:
+        """Remove egos whose drive has ended from the simulation (those still in it)."""
+        if not ego_ids:
+            return
+        vehicle = self._api.vehicle
+        present = set(vehicle.getIDList())
+        for ego_id in ego_ids:
+            if ego_id in present:
+                vehicle.remove(ego_id)
+
+    # ----------------------------------------------------------------------- measures
 
     def _new_ssm_log(self) -> Path:
         """A fresh file name for the next episode's SSM log."""
@@ -560,7 +821,7 @@ class SumoBackend(Backend):
         self._load(["-c", str(config), *_FORCED_ARGS])
         self._api.simulation.getTime()
         try:
-            return ssm.read_log(log, episode.dt, since=episode.end.entry_time)
+            return ssm.read_log(log, episode.dt, since=episode.ego.end.entry_time)
         except ssm.LogError as exc:
             raise BackendError(ErrorCode.SIMULATOR_ERROR, str(exc)) from exc
         finally:
@@ -583,52 +844,61 @@ class SumoBackend(Backend):
 
     # ----------------------------------------------------------------------- observation
 
-    def _lane(self, episode: _Episode, lane_id: str | None = None) -> tuple[int, int]:
+    def _lane(self, episode: _Episode, ego_id: str, lane_id: str | None = None) -> tuple[int, int]:
         """The ego's lane index and the number of lanes of its edge (one query when cached)."""
         api = self._api
         if lane_id is None:
-            lane_id = api.vehicle.getLaneID(EGO_ID)
+            lane_id = api.vehicle.getLaneID(ego_id)
         known = episode.lanes.get(lane_id)
         if known is None:
             road = api.lane.getEdgeID(lane_id)
             known = episode.lanes[lane_id] = (
-                api.vehicle.getLaneIndex(EGO_ID),
+                api.vehicle.getLaneIndex(ego_id),
                 api.edge.getLaneNumber(road),
             )
         return known
 
     def _observe(
-        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+        self,
+        episode: _Episode,
+        ego: EgoState,
+        seq: int,
+        events: Events,
+        action: AppliedAction,
+        traffic: bool = True,
     ) -> Observation:
+        """`ego`'s observation now (with the traffic if asked for and `traffic`); kept as its
+        last."""
         vehicle = self._api.vehicle
-        speed = vehicle.getSpeed(EGO_ID)  # first: raises if the ego has gone
-        acceleration = vehicle.getAcceleration(EGO_ID)
-        lane_id = vehicle.getLaneID(EGO_ID)
-        lane, lane_count = self._lane(episode, lane_id)
-        ego = Ego(
+        ego_id = ego.id
+        speed = vehicle.getSpeed(ego_id)  # first: raises if the ego has gone
+        acceleration = vehicle.getAcceleration(ego_id)
+        lane_id = vehicle.getLaneID(ego_id)
+        lane, lane_count = self._lane(episode, ego_id, lane_id)
+        state = Ego(
             speed=speed,
             acceleration=acceleration,
             lane=lane,
             lane_count=lane_count,
-            position=episode.entry_offset + vehicle.getDistance(EGO_ID),
+            position=ego.entry_offset + vehicle.getDistance(ego_id),
             speed_limit=self._api.lane.getMaxSpeed(lane_id),
-            changing_lane=0 if episode.lane_change is None else episode.lane_change.direction,
+            changing_lane=0 if ego.lane_change is None else ego.lane_change.direction,
         )
-        frame = None if episode.curved else self._frame()
-        ego_min_gap = episode.ego_min_gap
+        frame = None if episode.curved else self._frame(ego_id)
+        ego_min_gap = ego.min_gap
         sensed = self.sensor_range
-        leader = vehicle.getLeader(EGO_ID, sensed)
-        follower = vehicle.getFollower(EGO_ID, sensed)
+        leader = vehicle.getLeader(ego_id, sensed)
+        follower = vehicle.getFollower(ego_id, sensed)
         # SUMO finds no neighbour where there is no lane: on a built-in road, skip those queries.
         left = not episode.one_way or lane + 1 < lane_count
         right = not episode.one_way or lane > 0
         nearest, none = self._nearest, ()
         neighbours = Neighbours(
             left_leader=nearest(
-                episode, vehicle.getNeighbors(EGO_ID, 0b010) if left else none, ego_min_gap, frame
+                episode, vehicle.getNeighbors(ego_id, 0b010) if left else none, ego_min_gap, frame
             ),
             left_follower=nearest(
-                episode, vehicle.getNeighbors(EGO_ID, 0b000) if left else none, None, frame
+                episode, vehicle.getNeighbors(ego_id, 0b000) if left else none, None, frame
             ),
             leader=nearest(
                 episode, (leader,) if leader and leader[0] else none, ego_min_gap, frame
@@ -637,34 +907,34 @@ class SumoBackend(Backend):
                 episode, (follower,) if follower and follower[0] else none, None, frame
             ),
             right_leader=nearest(
-                episode, vehicle.getNeighbors(EGO_ID, 0b011) if right else none, ego_min_gap, frame
+                episode, vehicle.getNeighbors(ego_id, 0b011) if right else none, ego_min_gap, frame
             ),
             right_follower=nearest(
-                episode, vehicle.getNeighbors(EGO_ID, 0b001) if right else none, None, frame
+                episode, vehicle.getNeighbors(ego_id, 0b001) if right else none, None, frame
             ),
         )
         obs = Observation(
             seq=seq,
             time=self._api.simulation.getTime(),
-            ego=ego,
+            ego=state,
             neighbours=neighbours,
             events=events,
             action=action,
-            traffic=self._traffic(episode),
+            traffic=self._traffic(episode) if traffic else None,
         )
-        episode.last = obs
+        ego.last = obs
         return obs
 
     def _traffic(self, episode: _Episode) -> Traffic | None:
-        """Every other vehicle (reset option ``report_traffic``), or None."""
+        """Every vehicle but the egos (reset option ``report_traffic``), or None."""
         if not episode.measures.report_traffic:
             return None
-        return observe_traffic(self._api, EGO_ID, self.sensor_range, episode.min_gaps)
+        return observe_traffic(self._api, episode.ids, self.sensor_range, episode.min_gaps)
 
-    def _frame(self) -> tuple[float, float, float, float]:
+    def _frame(self, ego_id: str) -> tuple[float, float, float, float]:
         """The ego's position and the unit normal to the left of its heading."""
-        x, y = self._api.vehicle.getPosition(EGO_ID)
-        heading = math.radians(self._api.vehicle.getAngle(EGO_ID))
+        x, y = self._api.vehicle.getPosition(ego_id)
+        heading = math.radians(self._api.vehicle.getAngle(ego_id))
         return (x, y, -math.cos(heading), math.sin(heading))
 
     def _nearest(
@@ -701,13 +971,19 @@ class SumoBackend(Backend):
         return Neighbour(True, gap, lateral, api.vehicle.getSpeed(other), other)
 
     def _arrival_observation(
-        self, episode: _Episode, seq: int, events: Events, action: AppliedAction
+        self,
+        episode: _Episode,
+        ego: EgoState,
+        seq: int,
+        events: Events,
+        action: AppliedAction,
+        traffic: bool = True,
     ) -> Observation:
         """The ego has left the network: extrapolate its last observed state by one decision."""
-        last = episode.last
+        last = ego.last
         assert last is not None
         elapsed = episode.dt * episode.substeps
-        ego = replace(
+        state = replace(
             last.ego,
             speed=max(0.0, last.ego.speed + action.acceleration * elapsed),
             acceleration=action.acceleration,
@@ -717,10 +993,10 @@ class SumoBackend(Backend):
             last,
             seq=seq,
             time=self._api.simulation.getTime(),
-            ego=ego,
+            ego=state,
             events=events,
             action=action,
-            traffic=self._traffic(episode),
+            traffic=self._traffic(episode) if traffic else None,
         )
 
     # ----------------------------------------------------------------------- lifecycle
@@ -744,14 +1020,3 @@ class SumoBackend(Backend):
 
 def _second(pair: tuple[str, float]) -> float:
     return pair[1]
-
-
-def _collision_partner(collisions: Any) -> str:
-    """The vehicle the ego collided with in this simulation step, or ""."""
-    partner = ""
-    for collision in collisions:
-        if collision.collider == EGO_ID:
-            partner = collision.victim
-        elif collision.victim == EGO_ID:
-            partner = collision.collider
-    return partner

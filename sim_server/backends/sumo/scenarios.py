@@ -147,7 +147,7 @@ class RingOptions(ParsedOptions):
     ring_length: float = 230.0
     """Circumference of the ring (m), at the centre of its one lane."""
     vehicles: int = 22
-    """Vehicles on the ring, the ego included, placed evenly at reset."""
+    """Vehicles on the ring, the egos included, placed evenly at reset."""
     human_model: str = "eidm"
     """The humans' car-following model, a key of `RING_HUMAN_MODELS`."""
 
@@ -170,13 +170,23 @@ class RingOptions(ParsedOptions):
             )
 
     def slot(self, index: int) -> tuple[str, float]:
-        """Where vehicle `index` (0 = the ego) starts: its route and its front's lane position.
+        """Where vehicle `index` starts: its route and its front's lane position.
 
-        Fronts are `ring_length / vehicles` apart, the ego's 5 m past the start of edge ``a``
-        (its back on the seam, not across it)."""
+        Fronts are `ring_length / vehicles` apart, slot 0's (the first ego's) 5 m past the
+        start of edge ``a`` (its back on the seam, not across it)."""
         half = self.ring_length / 2
         front = RING_VEHICLE_LENGTH + index * self.ring_length / self.vehicles
         return (RING_ROUTES[0], front) if front < half else (RING_ROUTES[1], front - half)
+
+    def ego_slots(self, egos: int) -> tuple[int, ...]:
+        """The slots of `egos` egos spread evenly round the ring: round(k x vehicles / egos)
+        (halves up), k = 0..egos-1; slot 0 is the first ego's. Refused if egos > vehicles."""
+        if egos > self.vehicles:
+            raise invalid_option(
+                f"option egos {egos} exceeds the ring's vehicles {self.vehicles}: each ego is one "
+                "of them (raise vehicles, or ask for fewer egos)"
+            )
+        return tuple(math.floor(k * self.vehicles / egos + 0.5) for k in range(egos))
 
     def ring_position(self, index: int) -> float:
         """The front of vehicle `index` at reset, in metres from the start of edge ``a``."""
@@ -285,19 +295,21 @@ def build_ring(
     scenario: RingScenario,
     layout: RingOptions | Mapping[str, OptionValue],
     cache_dir: Path,
+    ego_slots: tuple[int, ...] = (0,),
 ) -> Path:
     """Write (or reuse) the files of a ring scenario; returns the path of its .sumocfg.
 
     Two half-circle edges ``a`` and ``b`` of exactly ``ring_length / 2`` each, joined without
     internal junction lanes, so that a position on the ring is a lane position plus 0 or half
-    the length. `layout` may also be the scenario's options as a dict (they are parsed).
+    the length. `layout` may also be the scenario's options as a dict (they are parsed). The
+    humans fill every slot but `ego_slots` (the backend places the egos there).
     """
     if not isinstance(layout, RingOptions):
         layout = RingOptions.parse(layout)
     texts = {
         "road.nod.xml": _ring_nodes(layout),
         "road.edg.xml": _ring_edges(layout),
-        "routes.rou.xml": _ring_routes(layout),
+        "routes.rou.xml": _ring_routes(layout, frozenset(ego_slots)),
         f"{scenario.name}.sumocfg": _config(),
     }
     return _write_scenario(scenario.name, texts, cache_dir, ("--no-internal-links", "true"))
@@ -412,12 +424,14 @@ def _ring_edges(layout: RingOptions) -> str:
     )
 
 
-def _ring_routes(layout: RingOptions) -> str:
-    """The humans (every slot but the ego's 0) standing at their slots at time 0, driving
-    `layout.human_model`."""
+def _ring_routes(layout: RingOptions, ego_slots: frozenset[int]) -> str:
+    """The humans (every slot but the egos') standing at their slots at time 0, driving
+    `layout.human_model`; ``human{slot}`` each."""
     laps, (a, b) = layout.laps(), RING_EDGES
     humans = []
-    for i in range(1, layout.vehicles):
+    for i in range(layout.vehicles):
+        if i in ego_slots:
+            continue
         route, position = layout.slot(i)
         humans.append(
             f'    <vehicle id="human{i}" type="{HUMAN_TYPE}" route="{route}" depart="0" '

@@ -1,4 +1,4 @@
-"""Every vehicle of the simulation but the ego, as the columns of `protocol.messages.Traffic`.
+"""Every vehicle of the simulation but the egos, as the columns of `protocol.messages.Traffic`.
 
 What a calibration needs of the scenario's own drivers: each vehicle's odometer, speed,
 acceleration and its leader with the net gap to it. SUMO's leader distance excludes the
@@ -8,6 +8,7 @@ follower's minGap; it is added back, as for the ego's neighbours.
 from __future__ import annotations
 
 import math
+from collections.abc import Container
 from typing import Any
 
 from protocol.messages import Traffic
@@ -17,11 +18,12 @@ MAX_VEHICLES = 1024
 
 
 def observe_traffic(
-    api: Any, ego_id: str, sensor_range: float, min_gaps: dict[str, float]
+    api: Any, egos: Container[str], sensor_range: float, min_gaps: dict[str, float]
 ) -> Traffic:
-    """The state of every vehicle but `ego_id`; `min_gaps` caches each vehicle's minGap."""
+    """The state of every vehicle but the `egos` (their ids: one, or every ego of a multi-ego
+    episode); `min_gaps` caches each vehicle's minGap."""
     vehicle = api.vehicle
-    ids = [v for v in vehicle.getIDList() if v != ego_id][:MAX_VEHICLES]
+    ids = [v for v in vehicle.getIDList() if v not in egos][:MAX_VEHICLES]
     speeds = [vehicle.getSpeed(v) for v in ids]
     speed_of = dict(zip(ids, speeds, strict=True))
     leaders, gaps, leader_speeds = [], [], []

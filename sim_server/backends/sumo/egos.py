@@ -1,0 +1,182 @@
+"""The per-ego book-keeping of `SumoBackend`, for one ego and for many in one simulation.
+
+Every ego, the one of a one-ego episode (id ``ego``) and each of a multi-ego episode (protocol
+1.4: ``ego.0``, ``ego.1``, ...), has an `EgoState`: its own end rule, the lane change it has
+under way and its last observation. A decision being simulated is a `Drive` per ego, which
+collects what happened over the decision's simulation steps and turns it into the observation's
+`AppliedAction` and `Events`. The one-ego and the multi-ego paths share both, so an ego is
+judged the same way whether it drives alone or among others.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from protocol.messages import (
+    AppliedAction,
+    EgoObservation,
+    EndReason,
+    Events,
+    MultiObservation,
+    Observation,
+    Traffic,
+)
+from sim_server.backends.rules import EndRule, LaneChangeUnderWay
+
+EGO_ID_PREFIX = "ego."
+"""The egos of a multi-ego episode are ``ego.0``, ``ego.1``, ... in the order they entered."""
+
+QUIET = Events()
+"""The events of most steps (nothing happened); immutable, so shared."""
+
+
+def ego_ids(count: int) -> tuple[str, ...]:
+    """The SUMO vehicle ids of a multi-ego episode's `count` egos, in the order they enter."""
+    return tuple(f"{EGO_ID_PREFIX}{k}" for k in range(count))
+
+
+@dataclass(slots=True)
+class EgoState:
+    """One ego's book-keeping during an episode."""
+
+    id: str
+    """Its SUMO vehicle id, also its id on the wire."""
+    end: EndRule
+    """When its drive ends (its own stop timer; the entry time is the hand-over)."""
+    entry_offset: float
+    """Its front's position on its route when it entered (ring: its place on the ring at
+    reset); `Ego.position` is this plus SUMO's odometer."""
+    min_gap: float
+    """Its minGap, which SUMO's leader distances leave out."""
+    lane_change: LaneChangeUnderWay | None = None
+    last: Observation | None = None
+    """Its latest observation: extrapolated when it leaves the network."""
+
+
+class Drive:
+    """One ego's decision being simulated: the command, its verdicts, and what happened over
+    the simulation steps run so far."""
+
+    __slots__ = (
+        "aborted",
+        "applied_total",
+        "collision_with",
+        "completed",
+        "ego",
+        "end_of_road",
+        "lane_change",
+        "limited_by",
+        "refused",
+        "request",
+        "started",
+        "substeps",
+        "teleported",
+    )
+
+    def __init__(
+        self, ego: EgoState, request: float, lane_change: int, refused: str, started: bool
+    ) -> None:
+        self.ego = ego
+        self.request = request
+        self.lane_change = lane_change
+        self.refused = refused
+        self.started = started
+        self.applied_total = 0.0
+        self.limited_by = ""
+        self.substeps = 0
+        self.collision_with = ""
+        self.end_of_road = False
+        self.teleported = False
+        self.completed = False
+        self.aborted = False
+
+    def applied(self, acceleration: float, why: str) -> None:
+        """One simulation step ran with `acceleration`; `why` names the rule that limited it
+        ("" none): the first step whose value was limited names the decision's."""
+        self.applied_total += acceleration
+        self.limited_by = self.limited_by or why
+        self.substeps += 1
+
+    def outcome(self) -> tuple[AppliedAction, Events]:
+        """The decision as applied (mean acceleration over the steps run) and its events."""
+        refused = self.refused
+        action = AppliedAction(
+            requested_acceleration=self.request,
+            requested_lane_change=self.lane_change,
+            acceleration=self.applied_total / self.substeps,
+            lane_change=0 if refused else self.lane_change,
+            acceleration_limited_by=self.limited_by,
+            lane_change_refused=refused,
+        )
+        collision_with = self.collision_with
+        if not (
+            collision_with
+            or self.end_of_road
+            or self.started
+            or self.completed
+            or self.aborted
+            or refused
+            or self.teleported
+        ):
+            return action, QUIET
+        events = Events(
+            collision=bool(collision_with),
+            collision_with=collision_with,
+            end_of_road=self.end_of_road,
+            lane_change_started=self.started,
+            lane_change_completed=self.completed,
+            lane_change_refused=bool(refused),
+            teleported=self.teleported,
+            lane_change_aborted=self.aborted,
+        )
+        return action, events
+
+
+def collision_partner(collisions: Any, ego_id: str) -> str:
+    """The vehicle `ego_id` collided with in this simulation step, or ""."""
+    partner = ""
+    for collision in collisions:
+        if collision.collider == ego_id:
+            partner = collision.victim
+        elif collision.victim == ego_id:
+            partner = collision.collider
+    return partner
+
+
+def collision_partners(collisions: Any) -> dict[str, str]:
+    """Every vehicle in a collision of this simulation step -> the vehicle it collided with (the
+    last such collision, as `collision_partner`): two egos that collide end both."""
+    partners: dict[str, str] = {}
+    for collision in collisions:
+        partners[collision.collider] = collision.victim
+        partners[collision.victim] = collision.collider
+    return partners
+
+
+def ego_observation(ego_id: str, obs: Observation) -> EgoObservation:
+    """One ego's part of a `MultiObservation`, from its own observation."""
+    return EgoObservation(
+        ego_id, obs.ego, obs.neighbours, obs.events, obs.action,
+        obs.terminated, obs.truncated, obs.reason,
+    )  # fmt: skip
+
+
+def multi_observation(
+    seq: int,
+    time: float,
+    reported: Iterable[tuple[str, Observation]],
+    truncated: bool,
+    last_end: str,
+    traffic: Traffic | None,
+) -> MultiObservation:
+    """The egos that drove into this step (id, observation), in their stable order, as one
+    reply: `truncated` at their time limit (every ego is then truncated), terminated with
+    `last_end` (the reason of the last end) when none is left, else running."""
+    egos = tuple([ego_observation(ego_id, obs) for ego_id, obs in reported])
+    if truncated:
+        return MultiObservation(seq, time, egos, False, True, EndReason.TIME_LIMIT, traffic)
+    if last_end:
+        return MultiObservation(seq, time, egos, True, False, last_end, traffic)
+    return MultiObservation(seq, time, egos, traffic=traffic)
