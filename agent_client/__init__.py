@@ -1,5 +1,5 @@
-"""The learner side of the bridge: Gymnasium envs over the wire, drivers, a TD3 learner,
-evaluation and a conformance kit for servers.
+"""The learner side of the bridge: Gymnasium envs over the wire (and a PettingZoo one for many
+egos), drivers, a TD3 learner, evaluation and a conformance kit for servers.
 
 This package never imports the simulator side (`sim_server`) or SUMO: only the protocol. The
 names below are imported lazily, so that `agent-client --help` does not pay for gymnasium or
@@ -18,6 +18,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "RemoteEnv": "agent_client.envs.remote_env",
     "RemoteVectorEnv": "agent_client.envs.vector_env",
+    "RemoteParallelEnv": "agent_client.envs.parallel_env",
     "connect": "agent_client.transport",
     "Channel": "agent_client.transport",
     "IDMDriver": "agent_client.drivers.idm",
@@ -47,6 +48,7 @@ __all__ = [
     "InvalidReply",
     "MalformedReply",
     "RemoteEnv",
+    "RemoteParallelEnv",
     "RemoteVectorEnv",
     "ServerError",
     "ServerLost",
@@ -65,6 +67,7 @@ if TYPE_CHECKING:
     from agent_client.drivers.episode import run_episode
     from agent_client.drivers.idm import IDMDriver, IDMParams
     from agent_client.drivers.spec import load_driver
+    from agent_client.envs.parallel_env import RemoteParallelEnv
     from agent_client.envs.remote_env import RemoteEnv
     from agent_client.envs.vector_env import RemoteVectorEnv
     from agent_client.errors import (

@@ -6,8 +6,8 @@ The checks use only the wire (docs/protocol.md), through the client's own transp
 malformed ones), replies parsed with `protocol.codec.decode_reply` and judged by the client's
 own rules (`agent_client.transport.replies`). They never look inside a server, so they judge a
 server written for any simulator in any language. Every receive has a deadline. The checks
-themselves are in `wire_checks` (what travels) and `session_checks` (the state machine); see
-docs/conformance.md for what each verifies.
+themselves are in `wire_checks` (what travels), `session_checks` (the state machine) and
+`multi_checks` (many egos, protocol 1.4); see docs/conformance.md for what each verifies.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 
+from agent_client.conformance import multi_checks as multi
 from agent_client.conformance import session_checks as session
 from agent_client.conformance import wire_checks as wire
 from agent_client.conformance.kit import (
@@ -50,6 +51,7 @@ CHECKS: tuple[tuple[str, Check], ...] = (
     ("bad_requests", wire.check_bad_requests),
     ("error_codes", wire.check_error_codes),
     ("determinism", session.check_determinism),
+    ("multi_ego", multi.check_multi_ego),
     ("close", session.check_close),
 )
 """The checks after `transport` and `handshake`, in order."""

@@ -17,7 +17,7 @@ from agent_client.errors import BridgeError, MalformedReply, ServerUnavailable
 from agent_client.transport import Channel, connect
 from protocol.codec import decode_reply, encode
 from protocol.errors import ProtocolError
-from protocol.messages import Reply, Request, Reset, Step
+from protocol.messages import MultiStep, Reply, Request, Reset, Step
 from protocol.transport.endpoint import new_routing_id
 
 CLIENT_NAME = "agent_client conformance kit"
@@ -112,8 +112,10 @@ def describe(request: Request | dict[str, Any] | bytes) -> str:
         return f"{len(request)} raw bytes"
     if isinstance(request, dict):
         return f"{request.get('type')!r} map"
-    if isinstance(request, Step):
-        return f"step {request.seq}"
+    if isinstance(request, Step | MultiStep):
+        return f"{request.TYPE} {request.seq}"
     if isinstance(request, Reset):
-        return f"reset {request.scenario!r} (seed {request.seed})"
+        egos = request.options.get("egos")
+        more = f", egos {egos}" if egos is not None else ""
+        return f"reset {request.scenario!r} (seed {request.seed}{more})"
     return request.TYPE

@@ -10,46 +10,47 @@ computed here, on the learner's side, from the observations alone.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import zmq
 from gymnasium import spaces
 
-from agent_client.defaults import CLOSE_TIMEOUT_S, DEFAULT_SCENARIO, RESET_TIMEOUT_S, STEP_TIMEOUT_S
-from agent_client.envs.scenario import first_observation, scenario_options
+from agent_client.defaults import DEFAULT_SCENARIO, RESET_TIMEOUT_S, STEP_TIMEOUT_S
+from agent_client.envs.link import (
+    ObservationVector,
+    RewardFn,
+    check_scenario,
+    open_channel,
+    resolve_reward,
+    say_goodbye,
+)
+from agent_client.envs.scenario import first_observation
 from agent_client.envs.spaces import (
     ACTION_SPACES,
     DEFAULT_ACCELERATION_LEVELS,
     ActionEncoding,
     decode_named,
     make_action_encoding,
-    observation_space,
 )
 from agent_client.errors import (
-    BridgeError,
     MalformedReply,
     ServerError,
     ServerTimeout,
     ServerUnavailable,
     UsageError,
 )
-from agent_client.transport import connect
 from agent_client.transport.channel import Channel
 from agent_client.transport.recording import WireRecorder
 from agent_client.transport.replies import ReplyChecker, check_welcome
-from protocol.messages import Close, Error, Observation, OptionValue, Reset, Step, Welcome
+from protocol.messages import Error, Observation, OptionValue, Reset, Step, Welcome
 from protocol.schema import Flattener
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 from protocol.transport.security import ClientCredentials
-
-RewardFn = Callable[[Observation | None, Observation, float], float]
 
 ActionDict = Mapping[str, Any]
 
@@ -99,7 +100,7 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         self.scenario = scenario
         self.options = dict(options)
         self.reset_timeout_s = reset_timeout_s
-        self.reward_fn = _resolve_reward(reward)
+        self.reward_fn = resolve_reward(reward)
         self.timeout_s = timeout_s
         self._credentials = credentials
         self._recorder = recorder
@@ -119,11 +120,8 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
             self._encoding = make_action_encoding(
                 action_space, self.welcome.action, True, acceleration_levels
             )
-        box = observation_space(
-            self.welcome.observation_fields, self.welcome.sensor_range, self.welcome.action
-        )
-        self.observation_space = box
-        self._observation_low, self._observation_high = box.low, box.high
+        self._vectors = ObservationVector(self.welcome)
+        self.observation_space = self._vectors.space
         self._seq = 0
         self._last: Observation | None = None
         self._done = True
@@ -239,39 +237,25 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         """Say goodbye (best effort, short timeout) and release the socket."""
         if getattr(self, "_connection", None) is None:
             return
-        # The server may be gone or broken: closing our side is all that is left then.
-        with contextlib.suppress(BridgeError, zmq.ZMQError, OSError):
-            self._connection.exchange(Close(), timeout_s=CLOSE_TIMEOUT_S)
-        self._connection.close()
+        say_goodbye(self._connection)
         self._connection = None  # type: ignore[assignment]
 
     # ----------------------------------------------------------------------- helpers
 
     def _connect(self) -> Channel:
         """A fresh channel to the server, recorded from its first frame if asked."""
-        channel = connect(self.address, self.timeout_s, self._credentials)
-        if self._recorder is not None:
-            self._recorder.tap(channel)
-        return channel
+        return open_channel(self.address, self.timeout_s, self._credentials, self._recorder)
 
     def _check_scenario(self) -> dict[str, OptionValue]:
         """The scenario's full options. Refuses early: an unknown scenario or option
         (`UsageError`), a welcome that breaks the protocol (`InvalidReply`); a 1.0/1.1 server
         without a step length gets one assumed, with a warning (`replies.check_welcome`)."""
-        offered = {s.name: s for s in self.welcome.scenarios}
-        if self.scenario not in offered:
-            raise UsageError(
-                f"server at {self.address} offers no scenario {self.scenario!r}; "
-                f"offered: {', '.join(offered)}"
-            )
-        source = f"invalid reply from {self.address}"
-        self.welcome, notes = check_welcome(self.welcome, source, self.scenario)
-        for note in notes:
+        checked = check_scenario(self.welcome, self.address, self.scenario, self.options)
+        for note in checked.notes:
             warnings.warn(note, stacklevel=3)
-        self._replies = ReplyChecker(self.welcome, source)
-        info = next(s for s in self.welcome.scenarios if s.name == self.scenario)
-        self.options = scenario_options(info, self.options, self.address)
-        return {**info.options, **self.options}
+        self.welcome, self._replies = checked.welcome, checked.replies
+        self.options = checked.options
+        return checked.all_options
 
     def _check_schema(self) -> Flattener:
         """The flat vector of the server's schema (`_check_scenario` checked the welcome)."""
@@ -314,8 +298,7 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         return self._last
 
     def _vector(self, obs: Observation) -> np.ndarray:
-        vector = np.asarray(self.flatten(obs), dtype=np.float32)
-        return np.clip(vector, self._observation_low, self._observation_high)
+        return self._vectors(obs)
 
     @staticmethod
     def _observation(reply: object) -> Observation:
@@ -324,11 +307,3 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         if not isinstance(reply, Observation):
             raise MalformedReply(f"expected an observation, got {type(reply).__name__}")
         return reply
-
-
-def _resolve_reward(reward: str | RewardFn) -> RewardFn:
-    if callable(reward):
-        return reward
-    from agent_client.rl.rewards import make_reward
-
-    return make_reward(reward)

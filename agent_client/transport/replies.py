@@ -7,6 +7,10 @@ broken rule is an `InvalidReply` that names the field, the value and the rule (w
 of protocol.md). What the codec already guarantees (types, finite numbers, int64, string
 lengths, string keys) is not checked again.
 
+A multi-ego episode (since 1.4: a reset naming ``egos``, then `MultiStep`s) is judged frame by
+frame: each `EgoObservation` by the rules of an observation (built with the frame's seq and
+time, against that ego's previous observation), the frame by §3.1's (the ids, the egos' ends).
+
 Rules a newer minor version may extend (the values of `reason`, `acceleration_limited_by`,
 `lane_change_refused` and the error codes) accept unknown values from a server of a newer minor
 version; rules added in 1.2 (a `step_length` for every scenario, the content of the first
@@ -25,11 +29,14 @@ from protocol.messages import (
     AppliedAction,
     Bye,
     Close,
+    EgoObservation,
     EndReason,
     Error,
     Events,
     Hello,
     LaneChangeRefusal,
+    MultiObservation,
+    MultiStep,
     Observation,
     Reply,
     Request,
@@ -54,6 +61,7 @@ WELL_KNOWN_OPTIONS: dict[str, type] = {
     "ego_driver": str,
     "ssm": bool,
     "report_traffic": bool,
+    "egos": int,
 }
 """Options the client sets when a scenario offers them (protocol.md §2.3), with their types."""
 
@@ -66,8 +74,11 @@ _ANSWERS: dict[type, tuple[type, ...]] = {
     Hello: (Welcome, Error),
     Reset: (Observation, Error),
     Step: (Observation, Error),
+    MultiStep: (MultiObservation, Error),
     Close: (Bye, Error),
 }
+_MANY_EGOS = (MultiObservation, Error)
+"""The answers to a reset that names ``egos`` (§3.1)."""
 _EPISODE_ENDERS = frozenset({ErrorCode.INSERTION_FAILED.value, ErrorCode.SIMULATOR_ERROR.value})
 
 
@@ -176,9 +187,11 @@ def _option_problems(field: str, default: object, kind: type, rule: _Rules) -> N
             field, default, "a float option: its default is a msgpack float (300.0, not 300), §2.3"
         )
     elif type(default) is not kind:
-        rule(field, default, f"a {kind.__name__} option (§2.3)")
+        rule(field, default, f"{'an' if kind is int else 'a'} {kind.__name__} option (§2.3)")
     elif kind is float and not default > 0:  # type: ignore[operator]
         rule(field, default, "> 0 s (§2.3)")
+    elif kind is int and not default >= 1:  # type: ignore[operator]
+        rule(field, default, ">= 1 (§2.3)")
 
 
 def with_step_lengths(welcome: Welcome, source: str = "") -> tuple[Welcome, list[str]]:
@@ -211,7 +224,8 @@ class ReplyChecker:
     """Judges the replies of one session, each against the request it answers.
 
     Keeps the episode's last observation: a step's reply is checked against it (time goes on,
-    lane changes start from its lane, a retried step gets the cached reply).
+    lane changes start from its lane, a retried step gets the cached reply). In a multi-ego
+    episode it keeps the last frame and each of its egos' observations instead.
     """
 
     def __init__(self, welcome: Welcome, source: str = "") -> None:
@@ -221,6 +235,12 @@ class ReplyChecker:
         """The server speaks a newer minor version: values unknown to us may be its additions."""
         self.last: Observation | None = None
         """The last observation of the running episode (None between episodes)."""
+        self.last_frame: MultiObservation | None = None
+        """The last frame of the running multi-ego episode (None between episodes and in a
+        one-ego episode)."""
+        self.last_egos: dict[str, Observation] = {}
+        """Each ego of `last_frame` by id, as an `Observation` (`ego_observation`): what its
+        next observation is judged against."""
 
     def check(self, request: Request | None, reply: Reply) -> Reply:
         """`reply` if it is a valid answer to `request` (None: unknown); else `InvalidReply`."""
@@ -229,26 +249,49 @@ class ReplyChecker:
         if isinstance(request, Hello) or (
             isinstance(reply, Error) and reply.code in _EPISODE_ENDERS
         ):
-            self.last = None
+            self._forget()
         elif isinstance(reply, Observation) and isinstance(request, Reset | Step):
+            self._forget()
             self.last = reply
+        elif isinstance(reply, MultiObservation) and isinstance(request, Reset | MultiStep):
+            self._forget()
+            self.last_frame = reply
+            self.last_egos = {ego.id: ego_observation(reply, ego) for ego in reply.egos}
         return reply
+
+    def _forget(self) -> None:
+        """No episode runs (or a new one starts)."""
+        self.last, self.last_frame, self.last_egos = None, None, {}
 
     def problems(self, request: Request | None, reply: Reply) -> list[InvalidReply]:
         """Every broken rule of `reply` as the answer to `request` (none: valid)."""
         problems: list[InvalidReply] = []
         rule = _Rules(self.source, problems)
-        expected = _ANSWERS.get(type(request), ())
+        many = isinstance(request, Reset) and "egos" in request.options
+        expected = _MANY_EGOS if many else _ANSWERS.get(type(request), ())
         if expected and not isinstance(reply, expected):
             names = " or ".join(getattr(kind, "TYPE", "?") for kind in expected)
-            asked = getattr(request, "TYPE", "request")
-            rule("reply.type", reply.TYPE, f"a {asked} is answered by {names} (§2.2)")
+            asked = "reset that names egos" if many else getattr(request, "TYPE", "request")
+            where = "§3.1" if many or isinstance(request, MultiStep) else "§2.2"
+            rule("reply.type", reply.TYPE, f"a {asked} is answered by {names} ({where})")
         elif isinstance(reply, Error):
             if reply.code not in ERROR_CODES and not self.newer:
                 rule("error.code", reply.code, "one of the codes of §5")
         elif isinstance(reply, Observation):
-            _ObservationRules(self, rule, reply, request).run()
+            last = self.last if isinstance(request, Step) else None
+            _ObservationRules(self, rule, reply, request, last).run()
+        elif isinstance(reply, MultiObservation):
+            _FrameRules(self, rule, reply, request).run()
         return problems
+
+
+def ego_observation(frame: MultiObservation, ego: EgoObservation) -> Observation:
+    """One ego of a multi-ego frame as an `Observation`: the frame's seq, time and traffic with
+    the ego's own state, events, action and end (what rewards and drivers take)."""
+    return Observation(
+        frame.seq, frame.time, ego.ego, ego.neighbours, ego.events, ego.action,
+        ego.terminated, ego.truncated, ego.reason, traffic=frame.traffic,
+    )  # fmt: skip
 
 
 class _Rules:
@@ -266,14 +309,26 @@ class _ObservationRules:
     """The rules of one observation (§3, §4), given the request it answers."""
 
     def __init__(
-        self, checker: ReplyChecker, rule: _Rules, obs: Observation, request: Request | None
+        self,
+        checker: ReplyChecker,
+        rule: _Rules,
+        obs: Observation,
+        request: Request | None,
+        last: Observation | None,
+        where: str = "observation",
+        ends: str = "ends the episode (§4.1)",
     ) -> None:
+        """`request` is what `obs` answers (for an ego of a frame: a `Step` of its command, or
+        the reset); `last` the observation the step was decided on; `where` names the fields
+        (``observation``, ``multi_observation.egos[2]``); `ends` says what a collision ends."""
         self.welcome = checker.welcome
         self.newer = checker.newer
         self.rule = rule
         self.obs = obs
         self.request = request
-        self.last = checker.last if isinstance(request, Step) else None
+        self.last = last
+        self.where = where
+        self.ends = ends
 
     def run(self) -> None:
         obs, request = self.obs, self.request
@@ -281,13 +336,21 @@ class _ObservationRules:
         if isinstance(request, Step) and last is not None and request.seq == last.seq > 0:
             if obs != last:  # a retry: nothing else to judge
                 self.rule(
-                    "observation",
+                    self.where,
                     None,
                     f"a retry of step {request.seq} (the same seq) gets the cached reply of its "
                     "first answer, unchanged (§3 Steps)",
                 )
             return
         self.sequence()
+        self.body()
+        self.ceiling()
+        self.safety()
+        _traffic_problems(obs.traffic, self.where, self.rule)
+
+    def body(self) -> None:
+        """The rules of the ego's own observation: also each ego's of a multi-ego frame."""
+        request = self.request
         self.ending()
         self.ego()
         self.neighbours()
@@ -296,24 +359,21 @@ class _ObservationRules:
             self.action(request)
         elif isinstance(request, Reset) and self.welcome.protocol >= (1, 2):
             self.first()
-        self.ceiling()
-        self.safety()
-        self.traffic()
 
     def sequence(self) -> None:
         obs, request = self.obs, self.request
         if isinstance(request, Reset) and obs.seq != 0:
-            self.rule("observation.seq", obs.seq, "0 in the reply to a reset (§4.1)")
+            self.rule(f"{self.where}.seq", obs.seq, "0 in the reply to a reset (§4.1)")
         elif isinstance(request, Step) and obs.seq != request.seq:
             self.rule(
-                "observation.seq",
+                f"{self.where}.seq",
                 obs.seq,
                 f"{request.seq} in the reply to step {request.seq} (§3 Steps)",
             )
         last = self.last
         if last is not None and not obs.time > last.time:
             self.rule(
-                "observation.time",
+                f"{self.where}.time",
                 obs.time,
                 f"later than the previous observation's {last.time:g} s: a step advances the "
                 "simulation (§4.1)",
@@ -322,10 +382,10 @@ class _ObservationRules:
     def ending(self) -> None:
         obs = self.obs
         if obs.terminated and obs.truncated:
-            self.rule("observation.truncated", True, "never true with terminated (§4.1)")
+            self.rule(f"{self.where}.truncated", True, "never true with terminated (§4.1)")
         elif isinstance(self.request, Reset) and (obs.terminated or obs.truncated):
             self.rule(
-                "observation.terminated" if obs.terminated else "observation.truncated",
+                f"{self.where}.terminated" if obs.terminated else f"{self.where}.truncated",
                 True,
                 "false at seq 0: an episode that cannot start is refused with insertion_failed "
                 "or simulator_error (§3 Reset)",
@@ -335,37 +395,37 @@ class _ObservationRules:
         elif obs.truncated:
             self._reason(TRUNCATION_REASONS, "a truncated episode's reason")
         elif obs.reason:
-            self.rule("observation.reason", obs.reason, '"" while the episode runs (§4.1)')
+            self.rule(f"{self.where}.reason", obs.reason, '"" while the episode runs (§4.1)')
 
     def _reason(self, allowed: frozenset[str], what: str) -> None:
         reason = self.obs.reason
-        if reason not in allowed and not (self.newer and reason and reason not in _ALL_REASONS):
-            self.rule("observation.reason", reason, f"{what}: {_one_of(allowed)} (§4.1)")
+        if not _reason_ok(reason, allowed, self.newer):
+            self.rule(f"{self.where}.reason", reason, f"{what}: {_one_of(allowed)} (§4.1)")
 
     def ego(self) -> None:
         ego = self.obs.ego
         driven = self.obs.action.acceleration_limited_by == AccelerationLimit.SIMULATOR.value
         if ego.speed < 0 and not driven:  # the simulator's own driver may reverse a little
-            self.rule("observation.ego.speed", ego.speed, ">= 0 m/s (§3 Action semantics)")
+            self.rule(f"{self.where}.ego.speed", ego.speed, ">= 0 m/s (§3 Action semantics)")
         if ego.lane_count < 1:
-            self.rule("observation.ego.lane_count", ego.lane_count, ">= 1 (§4.2)")
+            self.rule(f"{self.where}.ego.lane_count", ego.lane_count, ">= 1 (§4.2)")
         elif not 0 <= ego.lane < ego.lane_count:
             self.rule(
-                "observation.ego.lane",
+                f"{self.where}.ego.lane",
                 ego.lane,
                 f"a lane of the road at the ego, 0..{ego.lane_count - 1} with lane_count "
                 f"{ego.lane_count} (§4.2)",
             )
         if ego.changing_lane not in (-1, 0, 1):
-            self.rule("observation.ego.changing_lane", ego.changing_lane, "-1, 0 or 1 (§4.2)")
+            self.rule(f"{self.where}.ego.changing_lane", ego.changing_lane, "-1, 0 or 1 (§4.2)")
         if not ego.speed_limit > 0:
-            self.rule("observation.ego.speed_limit", ego.speed_limit, "> 0 m/s (§4.2)")
+            self.rule(f"{self.where}.ego.speed_limit", ego.speed_limit, "> 0 m/s (§4.2)")
 
     def neighbours(self) -> None:
         obs, sensed = self.obs, self.welcome.sensor_range
         lane, lanes = obs.ego.lane, obs.ego.lane_count
         for slot in NEIGHBOUR_SLOTS:
-            where = f"observation.neighbours.{slot}"
+            where = f"{self.where}.neighbours.{slot}"
             other = getattr(obs.neighbours, slot)
             if not other.present:
                 if (other.gap, other.lateral, other.speed, other.id) == (sensed, 0.0, 0.0, ""):
@@ -396,23 +456,23 @@ class _ObservationRules:
         ended = obs.terminated or obs.truncated
         if events.collision_with and not events.collision:
             self.rule(
-                "observation.events.collision_with",
+                f"{self.where}.events.collision_with",
                 events.collision_with,
                 '"" unless events.collision (§4.4)',
             )
         for flag, reason in (("collision", "collision"), ("end_of_road", "end_of_road")):
             happened = getattr(events, flag)
             if happened and not ended:
-                self.rule(f"observation.events.{flag}", True, "ends the episode (§4.1)")
+                self.rule(f"{self.where}.events.{flag}", True, self.ends)
             if obs.reason == reason and not happened:
                 self.rule(
-                    "observation.reason", reason, f"comes with events.{flag} true (§4.1, §4.4)"
+                    f"{self.where}.reason", reason, f"comes with events.{flag} true (§4.1, §4.4)"
                 )
 
     def action(self, step: Step) -> None:
         action, welcome = self.obs.action, self.welcome
         low, high = welcome.action.acceleration_min, welcome.action.acceleration_max
-        where = "observation.action"
+        where = f"{self.where}.action"
         if not _close(action.requested_acceleration, step.acceleration):
             self.rule(
                 f"{where}.requested_acceleration",
@@ -437,7 +497,7 @@ class _ObservationRules:
         self._lane_change(action, step)
 
     def _limit(self, action: AppliedAction, step: Step, low: float, high: float) -> None:
-        why, where = action.acceleration_limited_by, "observation.action.acceleration_limited_by"
+        why, where = action.acceleration_limited_by, f"{self.where}.action.acceleration_limited_by"
         if why and why not in ACCELERATION_LIMITS and not self.newer:
             self.rule(where, why, f'"" or {_one_of(ACCELERATION_LIMITS)} (§4.4)')
         elif not why and not low <= step.acceleration <= high:
@@ -446,13 +506,13 @@ class _ObservationRules:
             )
         elif not why and not _close(action.acceleration, step.acceleration):
             self.rule(
-                "observation.action.acceleration",
+                f"{self.where}.action.acceleration",
                 action.acceleration,
                 f"{step.acceleration:g}, as asked: acceleration_limited_by is empty (§4.4)",
             )
 
     def _lane_change(self, action: AppliedAction, step: Step) -> None:
-        where, refused = "observation.action", action.lane_change_refused
+        where, refused = f"{self.where}.action", action.lane_change_refused
         asked, applied = step.lane_change, action.lane_change
         if applied not in (0, asked):
             self.rule(f"{where}.lane_change", applied, f"0 (refused) or {asked}, as asked (§4.4)")
@@ -471,13 +531,13 @@ class _ObservationRules:
         events = self.obs.events
         if events.lane_change_refused != bool(refused):
             self.rule(
-                "observation.events.lane_change_refused",
+                f"{self.where}.events.lane_change_refused",
                 events.lane_change_refused,
                 f"{bool(refused)}: true exactly when action.lane_change_refused is set (§4.4)",
             )
         if events.lane_change_started != bool(applied):
             self.rule(
-                "observation.events.lane_change_started",
+                f"{self.where}.events.lane_change_started",
                 events.lane_change_started,
                 f"{bool(applied)}: true exactly when the applied lane_change is not 0 (§4.4)",
             )
@@ -486,7 +546,7 @@ class _ObservationRules:
 
     def _lanes_before(self, applied: int, asked: int, refused: str, last: Observation) -> None:
         """The lane change judged on the lane the decision was taken in (the last observation)."""
-        lane, lanes, where = last.ego.lane, last.ego.lane_count, "observation.action"
+        lane, lanes, where = last.ego.lane, last.ego.lane_count, f"{self.where}.action"
         if applied and not 0 <= lane + applied < lanes:
             self.rule(
                 f"{where}.lane_change",
@@ -520,68 +580,242 @@ class _ObservationRules:
         """Seq 0 (since 1.2): nothing has happened and nothing was decided yet."""
         obs = self.obs
         if obs.events != Events():
-            self.rule("observation.events", None, "all false at seq 0 (§4.4)")
+            self.rule(f"{self.where}.events", None, "all false at seq 0 (§4.4)")
         if obs.action != AppliedAction(0.0, 0, 0.0, 0):
-            self.rule("observation.action", None, 'zeros and "" at seq 0 (§4.4)')
+            self.rule(f"{self.where}.action", None, 'zeros and "" at seq 0 (§4.4)')
         if obs.ego.changing_lane:
-            self.rule("observation.ego.changing_lane", obs.ego.changing_lane, "0 at seq 0 (§4.2)")
+            self.rule(f"{self.where}.ego.changing_lane", obs.ego.changing_lane, "0 at seq 0 (§4.2)")
 
     def ceiling(self) -> None:
         obs, trip = self.obs, self.obs.ceiling
         if trip is None:
             return
         if not (obs.terminated or obs.truncated):
-            self.rule("observation.ceiling", trip.id, "nil until the last observation (§4.5)")
+            self.rule(f"{self.where}.ceiling", trip.id, "nil until the last observation (§4.5)")
             return
         if (trip.arrival_time is None) != (trip.average_speed is None):
             self.rule(
-                "observation.ceiling.average_speed",
+                f"{self.where}.ceiling.average_speed",
                 trip.average_speed,
                 "nil exactly when arrival_time is nil (§4.5)",
             )
         if trip.arrival_time is not None and trip.arrival_time < trip.depart_time:
             self.rule(
-                "observation.ceiling.arrival_time",
+                f"{self.where}.ceiling.arrival_time",
                 trip.arrival_time,
                 f"not before depart_time {trip.depart_time:g} s (§4.5)",
             )
         if trip.average_speed is not None and not trip.average_speed > 0:
-            self.rule("observation.ceiling.average_speed", trip.average_speed, "> 0 m/s (§4.5)")
+            self.rule(f"{self.where}.ceiling.average_speed", trip.average_speed, "> 0 m/s (§4.5)")
 
     def safety(self) -> None:
         obs, safety = self.obs, self.obs.safety
         if safety is None:
             return
         if not (obs.terminated or obs.truncated):
-            self.rule("observation.safety", None, "nil until the last observation (§4.7)")
+            self.rule(f"{self.where}.safety", None, "nil until the last observation (§4.7)")
             return
         thresholds = (safety.ttc_threshold, safety.drac_threshold, safety.pet_threshold)
         if min(thresholds) <= 0 or safety.ttc_below < 0:
-            self.rule("observation.safety", min(*thresholds, safety.ttc_below), "> 0 (§4.7)")
+            self.rule(f"{self.where}.safety", min(*thresholds, safety.ttc_below), "> 0 (§4.7)")
         for i, conflict in enumerate(safety.conflicts):
             if conflict.end < conflict.begin:
                 self.rule(
-                    f"observation.safety.conflicts[{i}].end",
+                    f"{self.where}.safety.conflicts[{i}].end",
                     conflict.end,
                     f"not before begin {conflict.begin:g} s (§4.7)",
                 )
             spent = (conflict.ttc_below, conflict.drac_beyond, conflict.ttc_integral)
             if min(spent) < 0:
-                self.rule(f"observation.safety.conflicts[{i}]", min(spent), ">= 0 (§4.7)")
+                self.rule(f"{self.where}.safety.conflicts[{i}]", min(spent), ">= 0 (§4.7)")
 
-    def traffic(self) -> None:
-        traffic = self.obs.traffic
-        if traffic is None:
-            return
-        count = len(traffic.id)
-        for name in _TRAFFIC_COLUMNS:
-            column = getattr(traffic, name)
-            if len(column) != count:
+
+class _FrameRules:
+    """The rules of one multi-ego frame (§3.1), given the request it answers: its seq and time,
+    the egos it lists, its end; each ego's observation by `_ObservationRules`."""
+
+    WHERE = "multi_observation"
+
+    def __init__(
+        self, checker: ReplyChecker, rule: _Rules, frame: MultiObservation, request: Request | None
+    ) -> None:
+        self.checker = checker
+        self.rule = rule
+        self.frame = frame
+        self.request = request
+        self.last = checker.last_frame if isinstance(request, MultiStep) else None
+
+    def run(self) -> None:
+        frame, request, last = self.frame, self.request, self.last
+        if isinstance(request, MultiStep) and last is not None and request.seq == last.seq > 0:
+            if frame != last:  # a retry: nothing else to judge
                 self.rule(
-                    f"observation.traffic.{name}",
-                    len(column),
-                    f"as many items as traffic.id ({count}) (§4.8)",
+                    self.WHERE,
+                    None,
+                    f"a retry of multi_step {request.seq} (the same seq) gets the cached reply of "
+                    "its first answer, unchanged (§3 Steps, §3.1)",
                 )
+            return
+        self.sequence()
+        self.ids()
+        self.ending()
+        self.egos()
+        _traffic_problems(frame.traffic, self.WHERE, self.rule)
+
+    def sequence(self) -> None:
+        frame, request, last = self.frame, self.request, self.last
+        if isinstance(request, Reset) and frame.seq != 0:
+            self.rule(f"{self.WHERE}.seq", frame.seq, "0 in the reply to a reset (§4.1)")
+        elif isinstance(request, MultiStep) and frame.seq != request.seq:
+            self.rule(
+                f"{self.WHERE}.seq",
+                frame.seq,
+                f"{request.seq} in the reply to multi_step {request.seq} (§3 Steps)",
+            )
+        if last is not None and not frame.time > last.time:
+            self.rule(
+                f"{self.WHERE}.time",
+                frame.time,
+                f"later than the previous frame's {last.time:g} s: a step advances the "
+                "simulation (§4.1)",
+            )
+
+    def ids(self) -> None:
+        """Each ego once; at seq 0 as many as asked for, afterwards exactly those still driving
+        before the step, in the stable order."""
+        ids = [ego.id for ego in self.frame.egos]
+        for i, ego_id in enumerate(ids):
+            if ego_id in ids[:i]:
+                self.rule(f"{self.WHERE}.egos[{i}].id", ego_id, "each ego once in a frame (§3.1)")
+        request, where = self.request, f"{self.WHERE}.egos"
+        if isinstance(request, Reset):
+            asked = request.options.get("egos")
+            if isinstance(asked, int) and not isinstance(asked, bool) and len(ids) != asked:
+                self.rule(where, ids, f"{asked} egos at seq 0 of a reset with egos {asked} (§3.1)")
+            return
+        if not isinstance(request, MultiStep):
+            return
+        last = self.last
+        running = (
+            [e.id for e in last.egos if not _over(e)]
+            if last is not None
+            else [c.id for c in request.commands]
+        )
+        if set(ids) != set(running):
+            self.rule(
+                where,
+                ids,
+                f"exactly the egos driving before the step, {running}: an ego that ended is "
+                "listed once with its end, then no more (§3.1)",
+            )
+        elif ids != running:
+            self.rule(where, ids, f"the stable order of the previous frame, {running} (§3.1)")
+
+    def ending(self) -> None:
+        """The frame's flags and reason against its egos' ends (§3.1)."""
+        frame, where = self.frame, self.WHERE
+        if frame.terminated and frame.truncated:
+            self.rule(f"{where}.truncated", True, "never true with terminated (§4.1)")
+        elif isinstance(self.request, Reset):  # each ego's own rules judge it at seq 0 too
+            if frame.terminated or frame.truncated:
+                self.rule(
+                    f"{where}.terminated" if frame.terminated else f"{where}.truncated",
+                    True,
+                    "false at seq 0: an episode that cannot start is refused with "
+                    "insertion_failed or simulator_error (§3 Reset)",
+                )
+        elif frame.truncated:
+            self._truncated()
+        elif any(ego.truncated for ego in frame.egos):
+            i = next(i for i, ego in enumerate(frame.egos) if ego.truncated)
+            self.rule(
+                f"{where}.truncated",
+                False,
+                f"true: egos[{i}] ({frame.egos[i].id}) is truncated, and the time limit "
+                "truncates the frame with it (§3.1)",
+            )
+        else:
+            self._terminated()
+
+    def _truncated(self) -> None:
+        frame, where = self.frame, self.WHERE
+        if not _reason_ok(frame.reason, TRUNCATION_REASONS, self.checker.newer):
+            self.rule(
+                f"{where}.reason",
+                frame.reason,
+                f"a truncated episode's reason: {_one_of(TRUNCATION_REASONS)} (§4.1)",
+            )
+        for i, ego in enumerate(frame.egos):
+            if not _over(ego):
+                self.rule(
+                    f"{where}.egos[{i}].truncated",
+                    False,
+                    "true at the time limit: every ego still driving is truncated with the "
+                    "frame (§3.1)",
+                )
+
+    def _terminated(self) -> None:
+        frame, where = self.frame, self.WHERE
+        driving = [ego.id for ego in frame.egos if not _over(ego)]
+        if frame.terminated and driving:
+            self.rule(
+                f"{where}.terminated",
+                True,
+                f"true only once no ego is left driving; {driving} still drive (§3.1)",
+            )
+        elif not frame.terminated and frame.egos and not driving:
+            self.rule(f"{where}.terminated", False, "true: no ego is left driving (§3.1)")
+        elif frame.terminated:
+            reasons = {ego.reason for ego in frame.egos if ego.reason}
+            if frame.reason not in reasons or not _reason_ok(
+                frame.reason, TERMINAL_REASONS, self.checker.newer
+            ):
+                self.rule(
+                    f"{where}.reason",
+                    frame.reason,
+                    f"the reason of the last ego's end: one of {sorted(reasons)} (§3.1)",
+                )
+        elif frame.reason:
+            self.rule(f"{where}.reason", frame.reason, '"" while an ego drives (§3.1)')
+
+    def egos(self) -> None:
+        """Each ego's observation by the rules of an observation, against its last one."""
+        frame, request, checker = self.frame, self.request, self.checker
+        commands = {c.id: c for c in request.commands} if isinstance(request, MultiStep) else {}
+        for i, ego in enumerate(frame.egos):
+            asked: Request | None = request if isinstance(request, Reset) else None
+            command = commands.get(ego.id)
+            if command is not None:
+                asked = Step(frame.seq, command.acceleration, command.lane_change)
+            last = checker.last_egos.get(ego.id) if self.last is not None else None
+            _ObservationRules(
+                checker, self.rule, ego_observation(frame, ego), asked, last,
+                f"{self.WHERE}.egos[{i}]", "ends its ego's drive (§3.1)",
+            ).body()  # fmt: skip
+
+
+def _over(ego: EgoObservation) -> bool:
+    return ego.terminated or ego.truncated
+
+
+def _reason_ok(reason: str, allowed: frozenset[str], newer: bool) -> bool:
+    """A reason of `allowed`, or one a newer minor version may have added."""
+    return reason in allowed or (newer and bool(reason) and reason not in _ALL_REASONS)
+
+
+def _traffic_problems(traffic: Traffic | None, where: str, rule: _Rules) -> None:
+    """Every column of `traffic` as long as its ids (§4.8)."""
+    if traffic is None:
+        return
+    count = len(traffic.id)
+    for name in _TRAFFIC_COLUMNS:
+        column = getattr(traffic, name)
+        if len(column) != count:
+            rule(
+                f"{where}.traffic.{name}",
+                len(column),
+                f"as many items as traffic.id ({count}) (§4.8)",
+            )
 
 
 _TRAFFIC_COLUMNS = tuple(f.name for f in fields(Traffic))

@@ -33,11 +33,20 @@ def test_every_top_level_name_imports(name: str) -> None:
     assert getattr(agent_client, name) is not None
 
 
-def test_the_two_envs_import_from_the_package() -> None:
-    from agent_client import RemoteEnv, RemoteVectorEnv
+def test_the_envs_import_from_the_package() -> None:
+    from agent_client import RemoteEnv, RemoteParallelEnv, RemoteVectorEnv
 
     assert RemoteEnv.__name__ == "RemoteEnv"
     assert RemoteVectorEnv.__name__ == "RemoteVectorEnv"
+    assert RemoteParallelEnv.__name__ == "RemoteParallelEnv"
+
+
+def test_the_parallel_env_is_a_pettingzoo_parallel_env() -> None:
+    from pettingzoo import ParallelEnv
+
+    from agent_client import RemoteParallelEnv
+
+    assert issubclass(RemoteParallelEnv, ParallelEnv)
 
 
 def test_an_unknown_name_is_an_attribute_error() -> None:

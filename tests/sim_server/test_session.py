@@ -23,7 +23,7 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.version import PROTOCOL_VERSION
-from sim_server.backends.base import SINGLE_EGO_ID
+from sim_server.backends.base import SINGLE_EGO_ID, Backend
 from sim_server.backends.fake import FakeBackend
 from sim_server.errors import BackendError
 from sim_server.session import Session
@@ -298,7 +298,16 @@ def test_a_bad_lane_change_in_a_command_is_named(session: Session) -> None:
     assert "commands[0].lane_change 2" in reply.message
 
 
-def test_a_one_ego_backend_refuses_more_egos(session: Session) -> None:
+class OneEgo(FakeBackend):
+    """The fake as a backend that drives one ego: the base class's adapters only."""
+
+    max_egos = 1
+    reset_many = Backend.reset_many
+    step_many = Backend.step_many
+
+
+def test_a_one_ego_backend_refuses_more_egos() -> None:
+    session = Session(OneEgo())
     ask(session, Hello(PROTOCOL_VERSION))
     reply = ask(session, Reset("cf", 1, {"egos": 3}))
     assert isinstance(reply, Error) and reply.code == ErrorCode.INVALID_OPTION
@@ -309,8 +318,9 @@ def test_a_multi_ego_episode_ends_when_its_last_ego_ends(session: Session) -> No
     first = multi_started(session)
     many = first
     while not (many.terminated or many.truncated):
-        many = ask(session, MultiStep(many.seq + 1, (Command(SINGLE_EGO_ID, 0.0),)))
-        assert isinstance(many, MultiObservation)
+        reply = ask(session, MultiStep(many.seq + 1, (Command(SINGLE_EGO_ID, 0.0),)))
+        assert isinstance(reply, MultiObservation)
+        many = reply
     assert many.truncated and many.egos[0].truncated and many.reason == "time_limit"
     after = ask(session, MultiStep(many.seq + 1, (Command(SINGLE_EGO_ID, 0.0),)))
     assert error_code(after) == ErrorCode.OUT_OF_ORDER

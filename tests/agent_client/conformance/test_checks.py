@@ -21,6 +21,7 @@ from protocol.messages import Close, Hello
 from protocol.transport.zeromq import connect_req
 from protocol.version import PROTOCOL_VERSION, format_version
 from tests.agent_client.conformance.toys import (
+    AcceptsAnyCommands,
     AcceptsBin,
     ActionAtSeqZero,
     AnswersAnotherSeq,
@@ -34,13 +35,18 @@ from tests.agent_client.conformance.toys import (
     IntegerDefault,
     KeepsDeadOwner,
     LaneOutOfRange,
+    ListsEgosTwice,
+    MultiWrongSeq,
     NaNSpeed,
     NoDecisionInterval,
+    NoEgos,
     NoHandover,
     NoRetryCache,
     NoStepLength,
     NoVersionCheck,
     OldNoStepLength,
+    OldProtocol,
+    OneEgoOnly,
     ReasonWhileRunning,
     RefusedResetEndsEpisode,
     SeqZeroIsARetry,
@@ -58,7 +64,8 @@ OURS = format_version(PROTOCOL_VERSION)
 
 CHECKS = [
     "transport", "handshake", "version_refusal", "schema", "reset", "step", "reconnect",
-    "ownership", "termination", "ordering", "bad_requests", "error_codes", "determinism", "close",
+    "ownership", "termination", "ordering", "bad_requests", "error_codes", "determinism",
+    "multi_ego", "close",
 ]  # fmt: skip
 
 
@@ -123,6 +130,13 @@ BROKEN: list[tuple[type[ToyServer], str, str]] = [
     (WrongErrorCode, "reset", "seed 2^31: expected error invalid_number, got invalid_message"),
     (SilentOnGarbage, "bad_requests", "garbage bytes: no reply from"),
     (AcceptsBin, "error_codes", "a bin scenario: expected error decode_error"),
+    (MultiWrongSeq, "multi_ego", "multi_observation.seq = 3: 2 in the reply to multi_step 2"),
+    (ListsEgosTwice, "multi_ego", "multi_observation.egos[1].id = 'ego': each ego once"),
+    (
+        AcceptsAnyCommands,
+        "multi_ego",
+        "a multi_step without commands: expected error invalid_message, got multi_observation",
+    ),
 ]
 """Each broken server, the check it fails and words of that check's detail."""
 
@@ -237,3 +251,24 @@ def test_busy_server_and_bad_arguments_exit_2(
     assert main(["check", "--server", toy.address, "--scenario", "nowhere"]) == 2
     assert "offers no scenario 'nowhere'; offered: cf" in capsys.readouterr().err
     assert toy.session.owner is None
+
+
+@pytest.mark.parametrize(
+    ("server_class", "words"),
+    [
+        (ToyServer, "egos 2: 2 egos (ego.0, ego.1), 3 multi_steps judged"),
+        (OneEgoOnly, "egos 2: invalid_option (one ego only)"),
+        (NoEgos, "scenario cf offers no option egos (one ego only): nothing to check"),
+        (OldProtocol, "protocol 1.3: many egos came with 1.4, nothing to check"),
+    ],
+    ids=["many", "one-ego-only", "no-egos-option", "protocol-1.3"],
+)
+def test_the_multi_ego_check_runs_what_the_server_offers(
+    server_class: type[ToyServer], words: str
+) -> None:
+    with server_class() as server:
+        report = run_checks(server.address, timeout_s=5.0)
+    result = {r.name: r for r in report.results}["multi_ego"]
+    assert result.status == PASS and words in result.detail, report.format_table()
+    if server_class is not OldProtocol:  # its welcome's version differs from its behaviour
+        assert report.exit_code == 0, report.format_table()

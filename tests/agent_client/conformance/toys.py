@@ -21,9 +21,12 @@ from protocol.errors import ProtocolError
 from protocol.messages import (
     AppliedAction,
     Bye,
+    Command,
     Error,
     Hello,
     Message,
+    MultiObservation,
+    MultiStep,
     Observation,
     Reset,
     ScenarioInfo,
@@ -474,3 +477,72 @@ class AcceptsBin(ToyServer):
             raw["scenario"] = raw["scenario"].decode()
             frame = msgpack.packb(raw, use_bin_type=True)
         return self.handle(peer, frame)
+
+
+# --------------------------------------------------------------------------- many egos (1.4)
+
+
+class NoEgos(ToyServer):
+    """A 1.4 server whose scenario offers no egos option (one ego only)."""
+
+    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
+        return rewrite_wire(
+            self.handle(peer, frame), "welcome", ("scenarios", 0, "options", "egos"), ...
+        )
+
+
+class OneEgoOnly(ToyServer):
+    """Offers egos but drives one: egos 2 gets invalid_option, as a one-ego backend answers."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.session.backend.max_egos = 1
+
+
+class MultiWrongSeq(ToyServer):
+    """Answers multi_step 2 with a frame numbered 3."""
+
+    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
+        reply = self.handle(peer, frame)
+        request = request_of(frame)
+        if isinstance(request, MultiStep) and request.seq == 2:
+            return rewrite_wire(reply, "multi_observation", ("seq",), 3)
+        return reply
+
+
+class AcceptsAnyCommands(ToyServer):
+    """Steps a multi_step without commands as if every running ego had asked for 0 m/s²."""
+
+    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
+        request = request_of(frame)
+        episode = self.session._episode
+        if isinstance(request, MultiStep) and not request.commands and episode and episode.egos:
+            commands = tuple(Command(ego, 0.0) for ego in episode.egos)
+            frame = encode(replace(request, commands=commands))
+        return self.handle(peer, frame)
+
+
+class ListsEgosTwice(ToyServer):
+    """Lists the first ego of every multi-ego frame twice."""
+
+    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
+        reply = self.handle(peer, frame)
+        many = decode_reply(reply)
+        if isinstance(many, MultiObservation):
+            return encode(replace(many, egos=(many.egos[0], *many.egos)))
+        return reply
+
+
+class OldProtocol(ToyServer):
+    """A protocol 1.3 server: its welcome says so (it has no egos option)."""
+
+    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
+        reply = rewrite_wire(self.handle(peer, frame), "welcome", ("protocol",), [1, 3])
+        return rewrite_wire(reply, "welcome", ("scenarios", 0, "options", "egos"), ...)
+
+
+class SilentOnMultiStep(ToyServer):
+    """Never answers a multi_step."""
+
+    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
+        return None if isinstance(request_of(frame), MultiStep) else self.handle(peer, frame)

@@ -1,12 +1,13 @@
 """The client's reply rules (`agent_client.transport.replies`), one broken rule at a time.
 
-Each case takes a valid reply of the fake backend, breaks one rule and expects the
-`InvalidReply` that names its field; a valid reply passes, and values a newer minor version may
+Each case takes a valid reply of the fake backend (one ego, or a frame of three, protocol 1.4),
+breaks one rule and expects the `InvalidReply` that names its field; a valid reply passes, and values a newer minor version may
 add pass from a server of that version.
 """
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -15,15 +16,20 @@ import pytest
 
 from agent_client.errors import InvalidReply
 from agent_client.transport.replies import ReplyChecker, check_welcome, scenario_problems
+from protocol.codec import decode_reply, encode
 from protocol.messages import (
     ActionSchema,
     Bye,
     Close,
+    Command,
     Conflict,
+    EgoObservation,
     Error,
     Events,
     Hello,
     LeaderTrip,
+    MultiObservation,
+    MultiStep,
     Neighbour,
     Observation,
     Reset,
@@ -36,6 +42,7 @@ from protocol.messages import (
 from protocol.schema import OBSERVATION_FIELDS
 from protocol.version import PROTOCOL_VERSION
 from sim_server.backends.fake import FAKE_OPTIONS, FakeBackend
+from sim_server.session import Session
 
 RESET = Reset("cf", 1)
 
@@ -299,3 +306,219 @@ def test_a_newer_minor_server_may_add_values() -> None:
 def test_events_stay_false_when_nothing_happened() -> None:
     first, _ = episode()
     assert first.events == Events()
+
+
+# --------------------------------------------------------------------------- many egos (1.4)
+
+MULTI_RESET = Reset("cf", 1, {"egos": 3})
+IDS = ("ego.0", "ego.1", "ego.2")
+
+
+def multi_step(seq: int = 1, acceleration: float = 0.5, *ids: str) -> MultiStep:
+    return MultiStep(seq, tuple(Command(ego, acceleration) for ego in ids or IDS))
+
+
+def multi_episode() -> tuple[MultiObservation, MultiObservation]:
+    """The fake's first frame of three egos and the one after multi_step 1 (all at 0.5)."""
+    backend = FakeBackend()
+    first = backend.reset_many("cf", 1, {**FAKE_OPTIONS, "egos": 3}, 3)
+    return first, backend.step_many(1, {ego: (0.5, 0) for ego in IDS})
+
+
+def multi_checker() -> ReplyChecker:
+    check = ReplyChecker(welcome(), "invalid reply from test")
+    check.check(MULTI_RESET, multi_episode()[0])
+    return check
+
+
+FrameBreaker = Callable[[MultiObservation], MultiObservation]
+
+
+def _one(i: int, breaker: Callable[[EgoObservation], EgoObservation]) -> FrameBreaker:
+    """Break ego `i` of a frame."""
+    return lambda f: replace(
+        f, egos=tuple(breaker(e) if k == i else e for k, e in enumerate(f.egos))
+    )
+
+
+def _ended(i: int, reason: str = "collision", truncated: bool = False) -> FrameBreaker:
+    def end(e: EgoObservation) -> EgoObservation:
+        if truncated:
+            return replace(e, truncated=True, reason=reason)
+        events = replace(e.events, collision=True, collision_with="leader")
+        return replace(e, terminated=True, reason=reason, events=events)
+
+    return _one(i, end)
+
+
+def _all(*breakers: FrameBreaker) -> FrameBreaker:
+    def apply(f: MultiObservation) -> MultiObservation:
+        for breaker in breakers:
+            f = breaker(f)
+        return f
+
+    return apply
+
+
+MULTI_CASES: list[tuple[str, FrameBreaker, str]] = [
+    ("seq", lambda f: replace(f, seq=2), "multi_observation.seq"),
+    ("time", lambda f: replace(f, time=0.0), "multi_observation.time"),
+    ("speed", _one(2, lambda e: replace(e, ego=replace(e.ego, speed=-1.0))),
+     "multi_observation.egos[2].ego.speed"),
+    ("requested", _one(1, lambda e: replace(e, action=replace(e.action, requested_acceleration=0.4))),
+     "multi_observation.egos[1].action.requested_acceleration"),
+    ("far leader", _one(0, lambda e: replace(e, neighbours=replace(
+        e.neighbours, leader=Neighbour(True, 500.0, 0.0, 10.0, "leader")))),
+     "multi_observation.egos[0].neighbours.leader.gap"),
+    ("collision running", _one(1, lambda e: replace(e, events=replace(
+        e.events, collision=True, collision_with="ego.0"))),
+     "multi_observation.egos[1].events.collision"),
+    ("reason running", _one(2, lambda e: replace(e, reason="collision")),
+     "multi_observation.egos[2].reason"),
+    ("twice", _one(1, lambda e: replace(e, id="ego.0")), "multi_observation.egos[1].id"),
+    ("missing", lambda f: replace(f, egos=f.egos[:2]), "multi_observation.egos"),
+    ("stranger", _one(2, lambda e: replace(e, id="ego.7")), "multi_observation.egos"),
+    ("order", lambda f: replace(f, egos=f.egos[::-1]), "multi_observation.egos"),
+    ("both flags", lambda f: replace(f, terminated=True, truncated=True, reason="time_limit"),
+     "multi_observation.truncated"),
+    ("terminated early", _all(_ended(0), lambda f: replace(f, terminated=True, reason="collision")),
+     "multi_observation.terminated"),
+    ("not terminated", _all(_ended(0), _ended(1), _ended(2)), "multi_observation.terminated"),
+    ("wrong reason", _all(_ended(0), _ended(1), _ended(2),
+                          lambda f: replace(f, terminated=True, reason="stopped")),
+     "multi_observation.reason"),
+    ("frame reason running", lambda f: replace(f, reason="collision"), "multi_observation.reason"),
+    ("one truncated", _ended(1, "time_limit", truncated=True), "multi_observation.truncated"),
+    ("not all truncated", _all(_ended(0, "time_limit", truncated=True),
+                               lambda f: replace(f, truncated=True, reason="time_limit")),
+     "multi_observation.egos[1].truncated"),
+    ("truncated reason", _all(_ended(0, "time_limit", True), _ended(1, "time_limit", True),
+                              _ended(2, "time_limit", True),
+                              lambda f: replace(f, truncated=True, reason="collision")),
+     "multi_observation.reason"),
+    ("traffic columns", lambda f: replace(
+        f, traffic=Traffic(("a",), ("h",), (), (1.0,), (1.0,), (0.0,), ("",), (200.0,), (0.0,))),
+     "multi_observation.traffic.lane"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("name", "breaker", "field"), MULTI_CASES, ids=[c[0] for c in MULTI_CASES])
+def test_a_broken_multi_step_reply_names_its_field(
+    name: str, breaker: FrameBreaker, field: str
+) -> None:
+    _, after = multi_episode()
+    error = refused(multi_checker(), multi_step(), breaker(after))
+    assert error.field == field, str(error)
+    assert str(error).startswith(f"invalid reply from test: {field}")
+
+
+def test_a_valid_multi_ego_episode_passes() -> None:
+    first, after = multi_episode()
+    check = ReplyChecker(welcome())
+    assert check.check(MULTI_RESET, first) is first
+    assert check.check(multi_step(), after) is after
+    assert check.check(multi_step(), after) is after  # a retry: the cached reply
+    assert "retry of multi_step 1" in refused(check, multi_step(), replace(after, time=99.0)).rule
+    assert check.last_frame is after and set(check.last_egos) == set(IDS)
+    assert check.last_egos["ego.1"].seq == 1 and check.last_egos["ego.1"].time == after.time
+
+
+def test_rules_without_the_previous_frame_take_the_commands_as_the_running_egos() -> None:
+    _, after = multi_episode()
+    fresh = ReplyChecker(welcome())
+    assert fresh.check(multi_step(), after) is after
+    error = refused(ReplyChecker(welcome()), multi_step(1, 0.5, "ego.0", "ego.1"), after)
+    assert error.field == "multi_observation.egos" and "['ego.0', 'ego.1']" in error.rule
+
+
+def test_an_ended_ego_is_listed_once_then_no_more() -> None:
+    first, after = multi_episode()
+    check = ReplyChecker(welcome())
+    check.check(MULTI_RESET, first)
+    crashed = _ended(0)(after)
+    assert check.check(multi_step(), crashed) is crashed
+    next_frame = replace(after, seq=2, time=after.time + 0.1)
+    again = refused(check, multi_step(2), next_frame)  # lists ego.0 again
+    assert again.field == "multi_observation.egos" and "listed once" in again.rule
+    without = replace(next_frame, egos=next_frame.egos[1:])
+    assert check.check(multi_step(2, 0.5, "ego.1", "ego.2"), without) is without
+
+
+def test_the_first_frame_has_every_ego_asked_for_and_nothing_decided() -> None:
+    first, _ = multi_episode()
+    fresh = ReplyChecker(welcome())
+    error = refused(fresh, Reset("cf", 1, {"egos": 4}), first)
+    assert error.field == "multi_observation.egos" and "4 egos" in error.rule
+    teleported = _one(1, lambda e: replace(e, events=replace(e.events, teleported=True)))(first)
+    assert refused(fresh, MULTI_RESET, teleported).field == "multi_observation.egos[1].events"
+    ended = _ended(0, "time_limit", truncated=True)(first)
+    assert refused(fresh, MULTI_RESET, ended).field == "multi_observation.egos[0].truncated"
+    over = replace(first, truncated=True, reason="time_limit")
+    assert refused(fresh, MULTI_RESET, over).field == "multi_observation.truncated"
+
+
+def test_each_ego_is_judged_on_its_own_previous_observation() -> None:
+    _, after = multi_episode()
+    check = multi_checker()
+    asked = MultiStep(1, (Command("ego.0", 0.5), Command("ego.1", 0.5, 1), Command("ego.2", 0.5)))
+    refusal = _one(1, lambda e: replace(
+        e, action=replace(e.action, requested_lane_change=1, lane_change_refused="in_progress"),
+        events=replace(e.events, lane_change_refused=True)))(after)  # fmt: skip
+    error = refused(check, asked, refusal)
+    assert error.field == "multi_observation.egos[1].action.lane_change_refused"
+    assert "changing_lane was 0" in error.rule
+
+
+@pytest.mark.parametrize(
+    ("request_", "reply", "words"),
+    [
+        (MULTI_RESET, episode()[0], "a reset that names egos is answered by multi_observation"),
+        (RESET, multi_episode()[0], "a reset is answered by observation"),
+        (multi_step(), episode()[1], "a multi_step is answered by multi_observation"),
+        (Step(1, 0.5), multi_episode()[1], "a step is answered by observation"),
+    ],
+)
+def test_a_frame_of_the_wrong_kind_is_refused(request_: Any, reply: Any, words: str) -> None:
+    error = refused(ReplyChecker(welcome()), request_, reply)
+    assert error.field == "reply.type" and words in error.rule
+
+
+@pytest.mark.parametrize(("default", "words"), [(0, ">= 1"), (1.0, "an int option")])
+def test_the_egos_option_is_an_int_of_at_least_one(default: Any, words: str) -> None:
+    info = scenario(options={**FAKE_OPTIONS, "egos": default})
+    problems = scenario_problems(welcome(scenarios=(info,)))
+    assert [p.field for p in problems] == ["welcome.scenarios[0].options.egos"]
+    assert words in problems[0].rule
+
+
+def test_a_hello_forgets_the_multi_ego_episode() -> None:
+    check = multi_checker()
+    check.check(Hello(PROTOCOL_VERSION), welcome())
+    assert check.last_frame is None and check.last_egos == {} and check.last is None
+
+
+def test_random_multi_ego_episodes_of_the_fake_keep_every_rule() -> None:
+    """The fake and the rules agree: random commands, crashes, stops and time limits."""
+    rng = random.Random(0)
+    session = Session(FakeBackend())
+
+    def ask(request: Any) -> Any:
+        return decode_reply(session.handle(b"client", encode(request)))
+
+    check = ReplyChecker(ask(Hello(PROTOCOL_VERSION)))
+    reasons: set[str] = set()
+    for _ in range(40):
+        egos = rng.randint(2, 8)
+        options = {"egos": egos, "max_episode_time": rng.choice([2.0, 60.0]), "length": 300.0}
+        request: Any = Reset("cf", rng.randrange(2**31), options)
+        frame = check.check(request, ask(request))
+        assert isinstance(frame, MultiObservation) and len(frame.egos) == egos
+        while not (frame.terminated or frame.truncated):
+            request = MultiStep(frame.seq + 1, tuple(
+                Command(e.id, rng.uniform(-8.0, 5.0), rng.choice((-1, 0, 1)))
+                for e in frame.egos if not (e.terminated or e.truncated)
+            ))  # fmt: skip
+            frame = check.check(request, ask(request))
+            assert isinstance(frame, MultiObservation)
+            reasons.update(e.reason for e in frame.egos if e.reason)
+    assert reasons == {"collision", "stopped", "time_limit", "end_of_road"}

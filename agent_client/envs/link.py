@@ -1,0 +1,175 @@
+"""What the envs over the wire share: the channel, the checked scenario, the flat vector, the
+reward and the goodbye.
+
+`RemoteEnv` (one ego) and `RemoteParallelEnv` (many egos, protocol 1.4) open and leave a server
+the same way, judge its welcome and every reply with the same `ReplyChecker`, send the same
+scenario options and turn a named observation into the same clipped vector, so that an ego is
+seen alike whichever env drives it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import TypeVar
+
+import numpy as np
+import zmq
+from gymnasium import spaces
+
+from agent_client.defaults import CLOSE_TIMEOUT_S, INSERTION_ATTEMPTS
+from agent_client.envs.scenario import retry_seed, scenario_options
+from agent_client.envs.spaces import observation_space
+from agent_client.errors import (
+    BridgeError,
+    InsertionFailed,
+    MalformedReply,
+    ServerError,
+    UsageError,
+)
+from agent_client.transport import connect
+from agent_client.transport.channel import Channel
+from agent_client.transport.recording import WireRecorder
+from agent_client.transport.replies import ReplyChecker, check_welcome
+from protocol.errors import ErrorCode
+from protocol.messages import (
+    Close,
+    Error,
+    MultiObservation,
+    Observation,
+    OptionValue,
+    Reset,
+    ScenarioInfo,
+    Welcome,
+)
+from protocol.schema import Flattener
+from protocol.transport.security import ClientCredentials
+
+log = logging.getLogger("agent_client")
+
+RewardFn = Callable[[Observation | None, Observation, float], float]
+"""reward(prev, obs, dt) -> float (`agent_client.rl.rewards`)."""
+
+First = TypeVar("First", Observation, MultiObservation)
+
+
+def resolve_reward(reward: str | RewardFn) -> RewardFn:
+    """A reward function, or the one of `agent_client.rl.rewards` named `reward`."""
+    if callable(reward):
+        return reward
+    from agent_client.rl.rewards import make_reward
+
+    return make_reward(reward)
+
+
+def open_channel(
+    address: str,
+    timeout_s: float,
+    credentials: ClientCredentials | None,
+    recorder: WireRecorder | None,
+) -> Channel:
+    """A fresh channel to the server, recorded from its first frame if asked."""
+    channel = connect(address, timeout_s, credentials)
+    if recorder is not None:
+        recorder.tap(channel)
+    return channel
+
+
+def say_goodbye(channel: Channel) -> None:
+    """Close the session (best effort, short timeout) and release the socket."""
+    # The server may be gone or broken: closing our side is all that is left then.
+    with contextlib.suppress(BridgeError, zmq.ZMQError, OSError):
+        channel.exchange(Close(), timeout_s=CLOSE_TIMEOUT_S)
+    channel.close()
+
+
+@dataclass(frozen=True)
+class CheckedScenario:
+    """The welcome as the client takes it, and the scenario an env drives on it."""
+
+    welcome: Welcome
+    """With every step length known (assumed for a 1.0/1.1 server, see `notes`)."""
+    replies: ReplyChecker
+    info: ScenarioInfo
+    options: dict[str, OptionValue]
+    """The options to send with every reset (`agent_client.envs.scenario.scenario_options`)."""
+    notes: list[str]
+    """What was assumed about the welcome, for a warning."""
+
+    @property
+    def all_options(self) -> dict[str, OptionValue]:
+        """Every option of the scenario, its defaults overridden by `options`."""
+        return {**self.info.options, **self.options}
+
+
+def check_scenario(
+    welcome: Welcome, address: str, scenario: str, options: dict[str, OptionValue]
+) -> CheckedScenario:
+    """Refuses early: an unknown scenario or option (`UsageError`), a welcome that breaks the
+    protocol (`InvalidReply`); a 1.0/1.1 server without a step length gets one assumed, with a
+    note (`replies.check_welcome`). ``egos`` is no option here: it makes every reply a
+    multi-ego frame, which `RemoteParallelEnv` (its own ``egos`` argument) reads."""
+    if "egos" in options:
+        raise UsageError(
+            "option egos starts a multi-ego episode: drive many egos with "
+            "agent_client.RemoteParallelEnv(address, scenario, egos=N)"
+        )
+    offered = {s.name: s for s in welcome.scenarios}
+    if scenario not in offered:
+        raise UsageError(
+            f"server at {address} offers no scenario {scenario!r}; offered: {', '.join(offered)}"
+        )
+    source = f"invalid reply from {address}"
+    welcome, notes = check_welcome(welcome, source, scenario)
+    info = next(s for s in welcome.scenarios if s.name == scenario)
+    wanted = scenario_options(info, options, address)
+    return CheckedScenario(welcome, ReplyChecker(welcome, source), info, wanted, notes)
+
+
+class ObservationVector:
+    """The flat float32 vector of the server's schema (`protocol.schema`), clipped into the
+    finite bounds of its Box (`agent_client.envs.spaces.observation_space`)."""
+
+    def __init__(self, welcome: Welcome) -> None:
+        self.flatten = Flattener(welcome.observation_fields)
+        self.space: spaces.Box = observation_space(
+            welcome.observation_fields, welcome.sensor_range, welcome.action
+        )
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        vector = np.asarray(self.flatten(obs), dtype=np.float32)
+        return np.clip(vector, self.space.low, self.space.high)
+
+
+def first_reply(
+    channel: Channel, replies: ReplyChecker, timeout_s: float, kind: type[First]
+) -> tuple[First, int | None]:
+    """The reply (of `kind`) to the reset in flight on `channel` and the seed that episode runs
+    with, ``insertion_failed`` retried on other seeds as `agent_client.envs.scenario`'s
+    `first_observation` does (`INSERTION_ATTEMPTS` resets, then `InsertionFailed`)."""
+    tried: list[int] = []
+    while True:
+        request = channel.sent
+        reply = replies.check(request, channel.receive(timeout_s))
+        if isinstance(reply, kind):
+            return reply, request.seed if isinstance(request, Reset) else None
+        if not isinstance(reply, Error):
+            raise MalformedReply(f"{channel.address}: expected {kind.TYPE}, got {reply.TYPE}")
+        if (
+            reply.code != ErrorCode.INSERTION_FAILED.value
+            or not isinstance(request, Reset)
+            or request.seed is None
+        ):
+            raise ServerError(reply.code, reply.message)
+        tried.append(request.seed)
+        if len(tried) >= INSERTION_ATTEMPTS:
+            raise InsertionFailed(request.scenario, tried, reply.message)
+        seed = retry_seed(tried[0], len(tried))
+        log.warning(
+            "%s: the egos could not enter with seed %d (%s); retrying with seed %d (%d/%d)",
+            request.scenario, request.seed, reply.message, seed, len(tried) + 1,
+            INSERTION_ATTEMPTS,
+        )  # fmt: skip
+        channel.send(replace(request, seed=seed))
