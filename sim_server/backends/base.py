@@ -59,7 +59,8 @@ def as_multi(obs: Observation, ego_id: str = SINGLE_EGO_ID) -> MultiObservation:
 
 
 class Backend(ABC):
-    """One simulation with one controlled ego vehicle.
+    """One simulation with one controlled ego vehicle (or, through `reset_many` and
+    `step_many`, up to `max_egos` of them).
 
     Failures the client should hear of are raised as `BackendError` (the server answers with
     its code); anything else is reported as an internal ``simulator_error``.
