@@ -39,7 +39,7 @@ SIDES = {"server": {"protocol", "sim_server"}, "learner": {"protocol", "agent_cl
 # Extras an image leaves out on purpose (installable with --build-arg EXTRAS=...): the modules
 # that need them do not work in the image. `highway` is a second simulator backend.
 # Extras an image leaves out on purpose (a build argument adds them: docs/docker.md, docs/ray.md).
-OMITTED_EXTRAS = {"server": {"highway"}, "learner": {"sb3", "ray", "rllib"}}
+OMITTED_EXTRAS = {"server": {"highway"}, "learner": {"sb3", "ray", "rllib", "pettingzoo"}}
 # Distributions that must never be in an image (the other side's heavy dependencies).
 FORBIDDEN_DISTRIBUTIONS = {
     "server": {"torch", "gymnasium", "tensorboard"},

@@ -110,7 +110,10 @@ def test_train_then_evaluate_on_cf(
 
 
 def test_lane_changing_training_runs_on_cflc(highway_server: RunningServer, tmp_path: Path) -> None:
-    train(highway_server.address, tmp_path, "cflc", 1, "--reward", "rlc")
+    # Without the gap rule, which let this one-episode run ask for no change at all: the test is
+    # that lane changes are asked for and logged on the other simulator.
+    rule = ("--set", "lane_gap_rule=false")
+    train(highway_server.address, tmp_path, "cflc", 1, "--reward", "rlc", *rule)
     rows = read_rows(tmp_path / "episodes.csv")
     assert len(rows) == 1
     assert int(rows[0]["lane_changes_started"]) + int(rows[0]["lane_changes_refused"]) > 0
