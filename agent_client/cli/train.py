@@ -37,6 +37,13 @@ def add_parser(commands: Commands) -> None:
         "--pretrain-idm", action="store_true", default=None, help="behaviour-clone IDM first"
     )
     train.add_argument("--decision-interval", type=float, help="s per decision (default 0.1)")
+    train.add_argument(
+        "--egos",
+        type=int,
+        metavar="N",
+        help="egos per simulation, all driven by the one shared policy and all learned from "
+        "(protocol 1.4; the ring, cf, cflc); evaluations stay one-ego (default 1)",
+    )
     train.add_argument("--config", type=Path, help="TOML (or JSON) file of settings")
     train.add_argument(
         "--set",
@@ -105,6 +112,7 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         "sampling": args.sampling,
         "ray_address": args.ray_address,
         "max_minutes": args.minutes,
+        "egos": args.egos,
     }
     if args.scenario is not None:
         flags["scenario"] = args.scenario
@@ -172,11 +180,12 @@ def run(args: argparse.Namespace) -> int:
     trainer = Trainer(
         config, servers, out, args.timeout, reporter, args.retry_for, args.eval_server
     )
+    egos = f", {config.egos} egos per simulation" if config.egos > 1 else ""
     try:
         reporter.message(
             f"training {config.learner.algo} on {config.scenario} with reward {config.reward} "
-            f"({trainer.features.name} features, {trainer.agent.n_lane_actions} lane choices) "
-            f"-> {out}"
+            f"({trainer.features.name} features, {trainer.agent.n_lane_actions} lane choices"
+            f"{egos}) -> {out}"
         )
         progress = trainer.run(resume=args.resume is not None)
     finally:

@@ -233,6 +233,12 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
             raise MalformedReply(f"{self.address} came back with another observation schema")
         self.welcome, self._replies = welcome, ReplyChecker(welcome, source)
 
+    @property
+    def connection(self) -> Channel:
+        """The channel to the server now (`reconnect` replaces it): for a collector that runs
+        another kind of episode, such as a multi-ego one, in this env's session."""
+        return self._connection
+
     def close(self) -> None:
         """Say goodbye (best effort, short timeout) and release the socket."""
         if getattr(self, "_connection", None) is None:

@@ -70,6 +70,11 @@ class TrainConfig:
     gap (`agent_client.rl.lanes.secure_gap`): asked for only when they can happen."""
     scenario_options: dict[str, Any] = field(default_factory=dict)
     """Extra scenario options sent with every reset (e.g. flow)."""
+    egos: int = 1
+    """Egos per training simulation (protocol 1.4): more than 1 drives that many egos in every
+    server's simulation with the one shared policy, every ego's steps feeding the one replay
+    buffer, one training episode per ego's drive (docs/learner.md, "Many egos: one shared
+    policy"); evaluations stay one-ego. 1: one ego per server, as before."""
     warmup_policy: str = "idm"
     """Actions before learning starts: idm (baseline + noise) or random."""
     pretrain_idm: bool = False
@@ -135,6 +140,7 @@ class TrainConfig:
                 )
         for name in (
             "episodes",
+            "egos",
             "eval_episodes",
             "converged_evals",
             "checkpoint_every",
@@ -143,6 +149,11 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.egos > 1 and self.sampling != "local":
+            raise UsageError(
+                f"egos {self.egos} needs sampling = local: the Ray sampling workers drive one "
+                "ego each (train many egos without --sampling ray)"
+            )
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise UsageError(f"max_minutes must be > 0, got {self.max_minutes}")
         if self.decision_interval <= 0:

@@ -5,6 +5,10 @@ One learner, one or more remote simulators. Each iteration sends every server it
 then receives: the replies become transitions in one replay buffer. Updating while the
 simulator steps is what lets the learner keep up with it (docs/learner.md, "Speed").
 
+With ``egos`` > 1 every server runs simulations of that many egos, all driven by the one shared
+policy, every ego's steps feeding the one buffer (`agent_client.training.multi_collect`); the
+evaluations stay one-ego episodes.
+
 Greedy evaluations on held-out seeds judge the policy against the IDM baseline and the
 leader-at-entry ceiling: on servers of their own while training goes on (`eval_servers`), or
 inline, spread over the training servers. Checkpoints make a run resumable; with one server and no
@@ -53,6 +57,12 @@ from agent_client.training.collect import (
 from agent_client.training.config import TrainConfig
 from agent_client.training.evaluator import EvaluationJob, Evaluator
 from agent_client.training.exploration import WarmupDriver, learning, noise_scale_at
+from agent_client.training.multi_collect import (
+    EgoSlot,
+    MultiEgoCollector,
+    MultiEgoLink,
+    batch_by_ego,
+)
 from agent_client.training.progress import (
     Profile,
     Progress,
@@ -131,6 +141,7 @@ class Trainer:
         self.features = FeatureMap(features, lane_phase_every=every)
         self.lanes = LaneChoice(3 if lane_change else 1, every, config.lane_gap_rule)
         self.scale = ActionScale.from_schema(self.env.welcome.action)
+        n_envs *= config.egos  # one exploration noise process per ego slot
         self.agent = Agent(
             self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs
         )
@@ -149,8 +160,14 @@ class Trainer:
         # The leader-at-entry ceiling costs the server a run-on of up to ~100 ms at every
         # episode end: only the evaluations, whose targets use it, ask for it.
         reset_options = {"report_ceiling": False} if _offers(self.env, "report_ceiling") else {}
-        self.collector: LocalCollector | RayCollector
-        if config.sampling == "ray":  # one asynchronous Ray worker per server (docs/ray.md)
+        self.collector: LocalCollector | MultiEgoCollector | RayCollector
+        if config.egos > 1:  # one multi-ego simulation per server, in the envs' own sessions
+            links = [MultiEgoLink.sharing(env, config.egos) for env in self.vec.envs]
+            self.collector = MultiEgoCollector(
+                links, self.features, self.lanes, self.scale, self._choose_egos,
+                self._next_seed, self.agent.reset_noise, reset_options,
+            )  # fmt: skip
+        elif config.sampling == "ray":  # one asynchronous Ray worker per server (docs/ray.md)
             from agent_client.training.ray_collect import ray_collector
 
             self.collector = ray_collector(
@@ -303,6 +320,17 @@ class Trainer:
         actions = [self.warmup(slot) for slot in slots]
         return np.array([u for u, _ in actions]), np.array([lane for _, lane in actions])
 
+    def _choose_egos(self, slots: Sequence[Slot]) -> tuple[np.ndarray, np.ndarray]:
+        """`_choose` for many egos: one batch, in which ego slot i always acts with noise
+        process i (its own, reset when its drive starts), whichever egos are still driving."""
+        step = self.progress.global_step
+        if not learning(self.config, step):
+            return self._choose(slots)
+        self.agent.noise_scale = noise_scale_at(self.config, step)
+        x, masks, rows = batch_by_ego(slots)
+        us, lanes = self.agent.act_batch(x, explore=True, masks=masks)
+        return us[rows], lanes[rows]
+
     def _next_seed(self) -> int:
         seed = self.config.seed + self._episodes_started
         self._episodes_started += 1
@@ -311,7 +339,7 @@ class Trainer:
     def _own_connections(self) -> list[RemoteEnv]:
         """The connections this process drives: with Ray sampling the training servers belong
         to the workers (which reconnect on their own), only the evaluation servers to us."""
-        if isinstance(self.collector, LocalCollector):
+        if isinstance(self.collector, LocalCollector | MultiEgoCollector):
             return [*self.vec.envs, *self.eval_envs]
         return list(self.eval_envs)
 
@@ -378,8 +406,10 @@ class Trainer:
         q = self.agent.q_values(np.stack(slot.states), np.array(slot.accelerations))
         q_mean = float(np.mean(np.take_along_axis(q, np.array(slot.lanes)[:, None], axis=1)))
         losses, self._losses = self._losses, []
+        ego = {"ego": slot.ego_id} if isinstance(slot, EgoSlot) else {}
         return {
             "episode": self.progress.episode,
+            **ego,
             "global_step": self.progress.global_step,
             "wall_time": round(self.progress.wall_time, 2),
             **{k: v for k, v in summary.to_dict().items() if k != "episode"},
