@@ -12,35 +12,27 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import TypeVar
+from dataclasses import dataclass
 
 import numpy as np
 import zmq
 from gymnasium import spaces
 
-from agent_client.defaults import CLOSE_TIMEOUT_S, INSERTION_ATTEMPTS
-from agent_client.envs.scenario import retry_seed, scenario_options
+from agent_client.defaults import CLOSE_TIMEOUT_S
+from agent_client.envs.scenario import scenario_options
 from agent_client.envs.spaces import observation_space
 from agent_client.errors import (
     BridgeError,
-    InsertionFailed,
-    MalformedReply,
-    ServerError,
     UsageError,
 )
 from agent_client.transport import connect
 from agent_client.transport.channel import Channel
 from agent_client.transport.recording import WireRecorder
 from agent_client.transport.replies import ReplyChecker, check_welcome
-from protocol.errors import ErrorCode
 from protocol.messages import (
     Close,
-    Error,
-    MultiObservation,
     Observation,
     OptionValue,
-    Reset,
     ScenarioInfo,
     Welcome,
 )
@@ -51,8 +43,6 @@ log = logging.getLogger("agent_client")
 
 RewardFn = Callable[[Observation | None, Observation, float], float]
 """reward(prev, obs, dt) -> float (`agent_client.rl.rewards`)."""
-
-First = TypeVar("First", Observation, MultiObservation)
 
 
 def resolve_reward(reward: str | RewardFn) -> RewardFn:
@@ -141,35 +131,3 @@ class ObservationVector:
     def __call__(self, obs: Observation) -> np.ndarray:
         vector = np.asarray(self.flatten(obs), dtype=np.float32)
         return np.clip(vector, self.space.low, self.space.high)
-
-
-def first_reply(
-    channel: Channel, replies: ReplyChecker, timeout_s: float, kind: type[First]
-) -> tuple[First, int | None]:
-    """The reply (of `kind`) to the reset in flight on `channel` and the seed that episode runs
-    with, ``insertion_failed`` retried on other seeds as `agent_client.envs.scenario`'s
-    `first_observation` does (`INSERTION_ATTEMPTS` resets, then `InsertionFailed`)."""
-    tried: list[int] = []
-    while True:
-        request = channel.sent
-        reply = replies.check(request, channel.receive(timeout_s))
-        if isinstance(reply, kind):
-            return reply, request.seed if isinstance(request, Reset) else None
-        if not isinstance(reply, Error):
-            raise MalformedReply(f"{channel.address}: expected {kind.TYPE}, got {reply.TYPE}")
-        if (
-            reply.code != ErrorCode.INSERTION_FAILED.value
-            or not isinstance(request, Reset)
-            or request.seed is None
-        ):
-            raise ServerError(reply.code, reply.message)
-        tried.append(request.seed)
-        if len(tried) >= INSERTION_ATTEMPTS:
-            raise InsertionFailed(request.scenario, tried, reply.message)
-        seed = retry_seed(tried[0], len(tried))
-        log.warning(
-            "%s: the egos could not enter with seed %d (%s); retrying with seed %d (%d/%d)",
-            request.scenario, request.seed, reply.message, seed, len(tried) + 1,
-            INSERTION_ATTEMPTS,
-        )  # fmt: skip
-        channel.send(replace(request, seed=seed))

@@ -31,12 +31,11 @@ from agent_client.envs.link import (
     ObservationVector,
     RewardFn,
     check_scenario,
-    first_reply,
     open_channel,
     resolve_reward,
     say_goodbye,
 )
-from agent_client.envs.scenario import SEEDS, scenario_options
+from agent_client.envs.scenario import SEEDS, first_reply, scenario_options
 from agent_client.envs.spaces import (
     ACTION_SPACES,
     DEFAULT_ACCELERATION_LEVELS,

@@ -10,13 +10,21 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
+from typing import TypeVar
 
 from agent_client.defaults import INSERTION_ATTEMPTS, INSERTION_RETRY_SEED_STRIDE
 from agent_client.errors import InsertionFailed, MalformedReply, ServerError, UsageError
 from agent_client.transport.channel import Channel
 from agent_client.transport.replies import TOLERANCE, ReplyChecker
 from protocol.errors import ErrorCode
-from protocol.messages import Error, Observation, OptionValue, Reset, ScenarioInfo
+from protocol.messages import (
+    Error,
+    MultiObservation,
+    Observation,
+    OptionValue,
+    Reset,
+    ScenarioInfo,
+)
 
 log = logging.getLogger("agent_client")
 
@@ -59,10 +67,22 @@ def retry_seed(seed: int, attempt: int) -> int:
     return (seed + attempt * INSERTION_RETRY_SEED_STRIDE) % SEEDS
 
 
+First = TypeVar("First", Observation, MultiObservation)
+"""What answers a reset: an observation, or a multi-ego frame after a reset naming ``egos``."""
+
+
 def first_observation(
     channel: Channel, replies: ReplyChecker, timeout_s: float
 ) -> tuple[Observation, int | None]:
-    """The reply to the reset in flight on `channel` and the seed that episode runs with.
+    """The observation answering the reset in flight on `channel`, and its seed (`first_reply`)."""
+    return first_reply(channel, replies, timeout_s, Observation)
+
+
+def first_reply(
+    channel: Channel, replies: ReplyChecker, timeout_s: float, kind: type[First]
+) -> tuple[First, int | None]:
+    """The reply (of `kind`) to the reset in flight on `channel` and the seed that episode runs
+    with.
 
     An ``insertion_failed`` reply is answered with the same reset on another seed
     (`retry_seed`), up to `INSERTION_ATTEMPTS` resets in all, then `InsertionFailed`; any other
@@ -72,10 +92,10 @@ def first_observation(
     while True:
         request = channel.sent
         reply = replies.check(request, channel.receive(timeout_s))
-        if isinstance(reply, Observation):
+        if isinstance(reply, kind):
             return reply, request.seed if isinstance(request, Reset) else None
         if not isinstance(reply, Error):
-            raise MalformedReply(f"{channel.address}: expected an observation, got {reply.TYPE}")
+            raise MalformedReply(f"{channel.address}: expected {kind.TYPE}, got {reply.TYPE}")
         retryable = isinstance(request, Reset) and request.seed is not None
         if reply.code != ErrorCode.INSERTION_FAILED.value or not retryable:
             raise ServerError(reply.code, reply.message)

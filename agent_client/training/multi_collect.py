@@ -28,12 +28,12 @@ from agent_client.drivers.policy import ActionScale
 from agent_client.envs.link import (
     RewardFn,
     check_scenario,
-    first_reply,
     open_channel,
     resolve_reward,
     say_goodbye,
 )
 from agent_client.envs.remote_env import RemoteEnv
+from agent_client.envs.scenario import first_reply
 from agent_client.errors import MalformedReply, ServerError, UsageError
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
