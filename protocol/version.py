@@ -26,6 +26,9 @@ from __future__ import annotations
 
 PROTOCOL_VERSION: tuple[int, int] = (1, 4)
 
+MANY_EGOS_VERSION: tuple[int, int] = (1, 4)
+"""The first version with many egos in one simulation (`multi_step`, `multi_observation`)."""
+
 
 def format_version(version: tuple[int, int]) -> str:
     """Render a version tuple as ``MAJOR.MINOR``."""

@@ -15,9 +15,8 @@ from protocol.messages import (
     Reset,
     Step,
 )
-from protocol.version import format_version
+from protocol.version import MANY_EGOS_VERSION, format_version
 
-MANY_EGOS_PROTOCOL = (1, 4)
 MULTI_STEPS = 3
 """multi_steps judged per episode."""
 _ACCELERATIONS = (0.5, 0.0, -0.5)
@@ -29,10 +28,10 @@ def check_multi_ego(kit: Kit) -> str:
     """Resets with egos 1 and 2 answered with multi_observation, stepped with multi_step; a
     wrong command set gets invalid_message, a step out_of_order (§3.1)."""
     assert kit.scenario is not None and kit.welcome is not None
-    if kit.welcome.protocol < MANY_EGOS_PROTOCOL:
+    if kit.welcome.protocol < MANY_EGOS_VERSION:
         return (
             f"protocol {format_version(kit.welcome.protocol)}: many egos came with "
-            f"{format_version(MANY_EGOS_PROTOCOL)}, nothing to check"
+            f"{format_version(MANY_EGOS_VERSION)}, nothing to check"
         )
     if "egos" not in kit.scenario.options:
         return (

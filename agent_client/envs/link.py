@@ -38,6 +38,7 @@ from protocol.messages import (
 )
 from protocol.schema import Flattener
 from protocol.transport.security import ClientCredentials
+from protocol.version import MANY_EGOS_VERSION, format_version
 
 log = logging.getLogger("agent_client")
 
@@ -131,3 +132,15 @@ class ObservationVector:
     def __call__(self, obs: Observation) -> np.ndarray:
         vector = np.asarray(self.flatten(obs), dtype=np.float32)
         return np.clip(vector, self.space.low, self.space.high)
+
+
+def refuse_one_ego_server(welcome: Welcome, address: str, who: str) -> None:
+    """Refuse (`UsageError`) a 1.x server before `MANY_EGOS_VERSION`: it drives one ego (another
+    major version is refused by the welcome's own checks). `who` names what needs many."""
+    major, minor = welcome.protocol
+    if major == MANY_EGOS_VERSION[0] and (major, minor) < MANY_EGOS_VERSION:
+        raise UsageError(
+            f"server at {address} speaks protocol {format_version(welcome.protocol)}: {who} "
+            f"needs {format_version(MANY_EGOS_VERSION)} or newer (many egos in one simulation, "
+            "docs/protocol.md §3.1)"
+        )

@@ -32,6 +32,7 @@ from agent_client.envs.link import (
     RewardFn,
     check_scenario,
     open_channel,
+    refuse_one_ego_server,
     resolve_reward,
     say_goodbye,
 )
@@ -59,7 +60,6 @@ from protocol.messages import (
 )
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 from protocol.transport.security import ClientCredentials
-from protocol.version import format_version
 
 try:
     from pettingzoo import ParallelEnv
@@ -68,7 +68,6 @@ except ModuleNotFoundError as exc:  # the extra is not installed
         "RemoteParallelEnv needs PettingZoo: pip install 'av-bridge[pettingzoo]'", name=exc.name
     ) from exc
 
-MANY_EGOS_PROTOCOL = (1, 4)
 """The first protocol version with many egos in one simulation (§3.1)."""
 _EPISODE_ENDERS = frozenset({ErrorCode.INSERTION_FAILED.value, ErrorCode.SIMULATOR_ERROR.value})
 
@@ -387,10 +386,4 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
 def _refuse_old(welcome: Welcome, address: str) -> None:
     """A server of protocol 1.x before 1.4 drives one ego only (another major version is
     refused by the welcome's own checks)."""
-    major, minor = welcome.protocol
-    if major == MANY_EGOS_PROTOCOL[0] and (major, minor) < MANY_EGOS_PROTOCOL:
-        raise UsageError(
-            f"server at {address} speaks protocol {format_version(welcome.protocol)}: "
-            f"RemoteParallelEnv needs {format_version(MANY_EGOS_PROTOCOL)} or newer (many egos "
-            "in one simulation, docs/protocol.md §3.1); drive one ego with RemoteEnv"
-        )
+    refuse_one_ego_server(welcome, address, "RemoteParallelEnv")

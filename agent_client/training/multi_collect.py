@@ -29,6 +29,7 @@ from agent_client.envs.link import (
     RewardFn,
     check_scenario,
     open_channel,
+    refuse_one_ego_server,
     resolve_reward,
     say_goodbye,
 )
@@ -51,9 +52,7 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.transport.security import ClientCredentials
-from protocol.version import format_version
 
-MANY_EGOS_PROTOCOL = (1, 4)
 """The first protocol version with many egos in one simulation (§3.1)."""
 
 
@@ -62,12 +61,7 @@ def check_many_egos(
 ) -> None:
     """Refuse (`UsageError`) a server older than protocol 1.4 and a scenario without the
     ``egos`` option: they drive one ego."""
-    major, minor = welcome.protocol
-    if major == MANY_EGOS_PROTOCOL[0] and (major, minor) < MANY_EGOS_PROTOCOL:
-        raise UsageError(
-            f"server at {address} speaks protocol {format_version(welcome.protocol)}: many egos "
-            f"need {format_version(MANY_EGOS_PROTOCOL)} or newer (docs/protocol.md §3.1)"
-        )
+    refuse_one_ego_server(welcome, address, "training with many egos")
     if "egos" not in options:
         raise UsageError(
             f"scenario {scenario} at {address} has no option egos: its server drives one ego "
