@@ -92,6 +92,12 @@ class Reset:
     seed: int | None = None
     options: dict[str, OptionValue] = field(default_factory=dict)
 
+    @property
+    def many_egos(self) -> bool:
+        """It names ``egos`` (1.4) or ``ego_share`` (1.5): a multi-ego episode (§3.1)."""
+        options = self.options
+        return "egos" in options or "ego_share" in options
+
 
 @dataclass(frozen=True, slots=True)
 class Step:

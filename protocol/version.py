@@ -15,6 +15,9 @@ Revision history:
     1.4  Many egos in one simulation: a reset that names the option ``egos`` is answered with
          `multi_observation` (every ego's observation, per-ego ends) and stepped with
          `multi_step` (one command per running ego).
+    1.5  Egos as a share of the traffic: a reset that names the option ``ego_share`` hands that
+         share of the vehicles over, and the vehicles that enter later join the episode at the
+         same share (a frame lists a joining ego after those that drove into the step).
 
 The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
 
@@ -24,10 +27,13 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 4)
+PROTOCOL_VERSION: tuple[int, int] = (1, 5)
 
 MANY_EGOS_VERSION: tuple[int, int] = (1, 4)
 """The first version with many egos in one simulation (`multi_step`, `multi_observation`)."""
+
+EGO_SHARE_VERSION: tuple[int, int] = (1, 5)
+"""The first version with egos as a share of the traffic (``ego_share``, egos joining)."""
 
 
 def format_version(version: tuple[int, int]) -> str:

@@ -1,6 +1,7 @@
 """The check of many egos in one simulation (since protocol 1.4, docs/protocol.md §3.1): resets
-naming ``egos``, their ``multi_observation`` replies judged by the client's own rules, and the
-command set a ``multi_step`` must carry (docs/conformance.md)."""
+naming ``egos`` (and ``ego_share``, 1.5, where a scenario offers it), their ``multi_observation``
+replies judged by the client's own rules, and the command set a ``multi_step`` must carry
+(docs/conformance.md)."""
 
 from __future__ import annotations
 
@@ -15,13 +16,15 @@ from protocol.messages import (
     Reset,
     Step,
 )
-from protocol.version import MANY_EGOS_VERSION, format_version
+from protocol.version import EGO_SHARE_VERSION, MANY_EGOS_VERSION, format_version
 
 MULTI_STEPS = 3
 """multi_steps judged per episode."""
 _ACCELERATIONS = (0.5, 0.0, -0.5)
-_SEEDS = (70, 80)
-"""First seed of the one-ego and of the two-ego episodes (two more are tried if one ends)."""
+_SEEDS = (70, 80, 90)
+"""First seed of the one-ego, the two-ego and the ``ego_share`` episodes (two more are tried
+if the first ends)."""
+_SHARE = 0.5
 
 
 def check_multi_ego(kit: Kit) -> str:
@@ -44,7 +47,26 @@ def check_multi_ego(kit: Kit) -> str:
     two = _two(kit)
     return (
         f"egos 1 ({ids}): seq 0 and {seq} multi_steps judged, the retry cached; missing, unknown "
-        f"and repeated commands -> invalid_message, step -> out_of_order; egos 2: {two}"
+        f"and repeated commands -> invalid_message, step -> out_of_order; egos 2: {two}; "
+        f"ego_share: {_share(kit)}"
+    )
+
+
+def _share(kit: Kit) -> str:
+    """A share of the traffic (1.5) where the scenario offers it: its frames judged (egos that
+    join included), and egos named beside it refused with invalid_option."""
+    assert kit.scenario is not None and kit.welcome is not None
+    if kit.welcome.protocol < EGO_SHARE_VERSION or "ego_share" not in kit.scenario.options:
+        return "not offered"
+    both = Reset(kit.scenario.name, _SEEDS[2], {"egos": 2, "ego_share": _SHARE})
+    expect_error(kit.ask(both), ErrorCode.INVALID_OPTION, "a reset naming egos and ego_share")
+    request = Reset(kit.scenario.name, _SEEDS[2], {"ego_share": _SHARE})
+    reply = kit.judged(request, kit.probe.ask(request, kit.reset_timeout_s))
+    first = expect(reply, MultiObservation, f"reset with ego_share {_SHARE}")
+    _, seq = _steps(kit, first)
+    return (
+        f"{_SHARE:g} -> {len(first.egos)} egos at seq 0, {seq} multi_steps judged; with egos "
+        "-> invalid_option"
     )
 
 

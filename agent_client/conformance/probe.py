@@ -115,7 +115,7 @@ def describe(request: Request | dict[str, Any] | bytes) -> str:
     if isinstance(request, Step | MultiStep):
         return f"{request.TYPE} {request.seq}"
     if isinstance(request, Reset):
-        egos = request.options.get("egos")
-        more = f", egos {egos}" if egos is not None else ""
+        many = {k: v for k, v in request.options.items() if k in ("egos", "ego_share")}
+        more = "".join(f", {name} {value}" for name, value in many.items())
         return f"reset {request.scenario!r} (seed {request.seed}{more})"
     return request.TYPE

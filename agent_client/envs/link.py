@@ -100,13 +100,14 @@ def check_scenario(
 ) -> CheckedScenario:
     """Refuses early: an unknown scenario or option (`UsageError`), a welcome that breaks the
     protocol (`InvalidReply`); a 1.0/1.1 server without a step length gets one assumed, with a
-    note (`replies.check_welcome`). ``egos`` is no option here: it makes every reply a
-    multi-ego frame, which `RemoteParallelEnv` (its own ``egos`` argument) reads."""
-    if "egos" in options:
-        raise UsageError(
-            "option egos starts a multi-ego episode: drive many egos with "
-            "agent_client.RemoteParallelEnv(address, scenario, egos=N)"
-        )
+    note (`replies.check_welcome`). ``egos`` and ``ego_share`` are no options here: they make every
+    reply a multi-ego frame, which `RemoteParallelEnv` (its own arguments of those names) reads."""
+    for name in ("egos", "ego_share"):
+        if name in options:
+            raise UsageError(
+                f"option {name} starts a multi-ego episode: drive many egos with "
+                f"agent_client.RemoteParallelEnv(address, scenario, {name}=...)"
+            )
     offered = {s.name: s for s in welcome.scenarios}
     if scenario not in offered:
         raise UsageError(
@@ -137,10 +138,16 @@ class ObservationVector:
 def refuse_one_ego_server(welcome: Welcome, address: str, who: str) -> None:
     """Refuse (`UsageError`) a 1.x server before `MANY_EGOS_VERSION`: it drives one ego (another
     major version is refused by the welcome's own checks). `who` names what needs many."""
+    refuse_old_server(welcome, address, MANY_EGOS_VERSION, who, "many egos in one simulation")
+
+
+def refuse_old_server(
+    welcome: Welcome, address: str, version: tuple[int, int], who: str, what: str
+) -> None:
+    """Refuse (`UsageError`) a 1.x server older than `version`, which brought `what`."""
     major, minor = welcome.protocol
-    if major == MANY_EGOS_VERSION[0] and (major, minor) < MANY_EGOS_VERSION:
+    if major == version[0] and (major, minor) < version:
         raise UsageError(
             f"server at {address} speaks protocol {format_version(welcome.protocol)}: {who} "
-            f"needs {format_version(MANY_EGOS_VERSION)} or newer (many egos in one simulation, "
-            "docs/protocol.md §3.1)"
+            f"needs {format_version(version)} or newer ({what}, docs/protocol.md §3.1)"
         )

@@ -10,7 +10,9 @@ is `RemoteEnv`'s: the flat observation vector with its finite bounds, the action
 consecutive observations, the reply checks and every deadline (`agent_client.envs.link`). An
 ego whose drive ends (a collision, the end of the road, a stop, the time limit) gets its last
 observation with its termination or truncation and then leaves `agents`; the episode is over
-once `agents` is empty.
+once `agents` is empty. With ``ego_share`` (protocol 1.5) the egos are a share of the traffic
+and the vehicles that enter during the episode join it: they appear in `agents` (and in
+`possible_agents`, which then grows) with their first observation.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from agent_client.envs.link import (
     RewardFn,
     check_scenario,
     open_channel,
+    refuse_old_server,
     refuse_one_ego_server,
     resolve_reward,
     say_goodbye,
@@ -60,6 +63,7 @@ from protocol.messages import (
 )
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 from protocol.transport.security import ClientCredentials
+from protocol.version import EGO_SHARE_VERSION
 
 try:
     from pettingzoo import ParallelEnv
@@ -76,7 +80,8 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
     """The egos of one remote simulation, stepped together (PettingZoo's parallel API).
 
     `possible_agents` are the ego ids of the first reset (asked for before any reset, they
-    reset once, seed 0, to find out), `agents` those still driving. Every agent has
+    reset once, seed 0, to find out; with `ego_share`, every ego seen so far), `agents` those
+    still driving. Every agent has
     `RemoteEnv`'s observation and action spaces (one object per agent, always the same);
     ``action_space="auto"`` takes the lane count of the first observation, as `RemoteEnv`
     does. `step` takes one action per agent in `agents`, in any of the encoding's forms or the
@@ -84,7 +89,8 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
     reward, termination, truncation and info (``info["observation"]``: the named
     `protocol.Observation`) per agent that drove into the step, the ended ones for the last
     time. The reward function is shared by all egos: it is called for each with that ego's two
-    consecutive observations.
+    consecutive observations. An ego that joins (`ego_share`) comes with reward 0 and
+    ``info["joined"]`` True.
     """
 
     metadata: dict[str, Any] = {
@@ -98,7 +104,8 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         address: str = DEFAULT_ADDRESS,
         scenario: str = DEFAULT_SCENARIO,
         *,
-        egos: int,
+        egos: int | None = None,
+        ego_share: float | None = None,
         reward: str | RewardFn = "safe",
         timeout_s: float = STEP_TIMEOUT_S,
         reset_timeout_s: float = RESET_TIMEOUT_S,
@@ -108,14 +115,15 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         recorder: WireRecorder | None = None,
         **options: OptionValue,
     ) -> None:
-        """Connect and shake hands; `egos` is the number of egos of every episode, `options`
-        are scenario options sent with every reset; the rest as `RemoteEnv`'s.
+        """Connect and shake hands; `egos` is the number of egos of every episode, or
+        `ego_share` their share of the traffic (one of the two); `options` are scenario options
+        sent with every reset; the rest as `RemoteEnv`'s.
 
-        Refused before any reset (`UsageError`): a server older than protocol 1.4, a scenario
-        without the ``egos`` option, an option or argument the scenario or env does not know.
+        Refused before any reset (`UsageError`): a server older than protocol 1.4 (1.5 for
+        `ego_share`), a scenario without the ``egos`` (``ego_share``) option, an option or
+        argument the scenario or env does not know.
         """
-        if isinstance(egos, bool) or not isinstance(egos, int) or egos < 1:
-            raise UsageError(f"egos must be an integer >= 1, got {egos!r}")
+        many = _many_option(egos, ego_share)
         if action_space not in ACTION_SPACES:
             raise UsageError(
                 f"action_space {action_space!r} is not one of: {', '.join(ACTION_SPACES)}"
@@ -125,18 +133,27 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         self.address = address
         self.scenario = scenario
         self.egos = egos
+        self.ego_share = ego_share
+        self._many = many
+        """The reset option that makes the episodes multi-ego: {"egos": N} or {"ego_share": x}."""
         self.timeout_s = timeout_s
         self.reset_timeout_s = reset_timeout_s
         self.reward_fn = resolve_reward(reward)
         self._connection = open_channel(address, timeout_s, credentials, recorder)
         try:
             welcome = self._connection.hello(timeout_s)
-            _refuse_old(welcome, address)
+            _refuse_old(welcome, address, ego_share is not None)
             checked = check_scenario(welcome, address, scenario, dict(options))
-            if "egos" not in checked.info.options:
+            (name,) = many
+            if name not in checked.info.options:
+                drives = (
+                    "its server drives one ego (use RemoteEnv)"
+                    if name == "egos"
+                    else "its server places a number of egos (use egos=N)"
+                )
                 raise UsageError(
-                    f"scenario {scenario} at {address} has no option egos: its server drives one "
-                    "ego (use RemoteEnv); options: " + ", ".join(checked.info.options)
+                    f"scenario {scenario} at {address} has no option {name}: {drives}; "
+                    "options: " + ", ".join(checked.info.options)
                 )
         except Exception:
             self.close()  # free the server for the next client, then report
@@ -208,7 +225,7 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         if seed is not None or self._rng is None:
             self._rng, _ = seeding.np_random(seed)
         self._episode_seed = int(seed) if seed is not None else int(self._rng.integers(SEEDS))
-        wanted = {**self.options, **self._episode_options(options or {}), "egos": self.egos}
+        wanted = {**self.options, **self._episode_options(options or {}), **self._many}
         self._connection.send(Reset(self.scenario, self._episode_seed, wanted))
         frame, retried = first_reply(
             self._connection, self._replies, self.reset_timeout_s, MultiObservation
@@ -243,10 +260,14 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         for ego in frame.egos:
             obs = ego_observation(frame, ego)
             prev = self._last.get(ego.id)
-            elapsed = obs.time - prev.time if prev is not None else 0.0
-            rewards[ego.id] = float(self.reward_fn(prev, obs, elapsed))
             observations[ego.id] = self._vectors(obs)
-            infos[ego.id] = {"observation": obs}
+            if prev is None:  # it joins (the reply checks let only an ego_share episode's in)
+                assert self._possible is not None
+                self._possible.append(ego.id)
+                rewards[ego.id], infos[ego.id] = 0.0, {"observation": obs, "joined": True}
+            else:
+                rewards[ego.id] = float(self.reward_fn(prev, obs, obs.time - prev.time))
+                infos[ego.id] = {"observation": obs}
             self._last[ego.id] = obs
         self._frame = frame
         over = frame.terminated or frame.truncated
@@ -302,8 +323,11 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
     def _episode_options(self, options: Mapping[str, Any]) -> dict[str, OptionValue]:
         """The scenario options among a reset's `options`: those the scenario does not offer
         are ignored with a warning (PettingZoo's own API test resets with an unknown one)."""
-        if "egos" in options:
-            raise UsageError("egos is fixed for the env: choose it with RemoteParallelEnv(egos=N)")
+        for name in ("egos", "ego_share"):
+            if name in options:
+                raise UsageError(
+                    f"{name} is fixed for the env: choose it with RemoteParallelEnv({name}=...)"
+                )
         offered = self._info.options
         ignored = [name for name in options if name not in offered and name != "decision_interval"]
         if ignored:
@@ -319,7 +343,9 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         """Take a reset's frame as the episode's start."""
         ids = [ego.id for ego in frame.egos]
         if self._possible is None:
-            self._possible = ids
+            self._possible = list(ids)
+        elif self.ego_share is not None:
+            self._possible += [agent for agent in ids if agent not in self._possible]
         elif not set(ids) <= set(self._possible):
             raise MalformedReply(
                 f"{self.address}: the egos of this reset, {ids}, are not those of the first, "
@@ -333,7 +359,7 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
     def _probe(self) -> None:
         """The ego ids and the lane count, asked for before any reset: from one reset (seed 0)
         whose episode is then dropped (the next `reset` starts the caller's own)."""
-        self._connection.send(Reset(self.scenario, 0, {**self.options, "egos": self.egos}))
+        self._connection.send(Reset(self.scenario, 0, {**self.options, **self._many}))
         frame, _ = first_reply(
             self._connection, self._replies, self.reset_timeout_s, MultiObservation
         )
@@ -383,7 +409,25 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         return checked
 
 
-def _refuse_old(welcome: Welcome, address: str) -> None:
-    """A server of protocol 1.x before 1.4 drives one ego only (another major version is
-    refused by the welcome's own checks)."""
+def _many_option(egos: int | None, ego_share: float | None) -> dict[str, OptionValue]:
+    """The reset option of a multi-ego episode: ``egos`` (an integer >= 1) or ``ego_share``
+    (within (0, 1]), exactly one of them."""
+    if (egos is None) == (ego_share is None):
+        raise UsageError("give egos (a number of egos) or ego_share (a share of the traffic)")
+    if ego_share is not None:
+        if isinstance(ego_share, bool) or not isinstance(ego_share, int | float):
+            raise UsageError(f"ego_share must be a number within (0, 1], got {ego_share!r}")
+        if not 0.0 < ego_share <= 1.0:
+            raise UsageError(f"ego_share must be within (0, 1], got {ego_share!r}")
+        return {"ego_share": float(ego_share)}
+    if isinstance(egos, bool) or not isinstance(egos, int) or egos < 1:
+        raise UsageError(f"egos must be an integer >= 1, got {egos!r}")
+    return {"egos": egos}
+
+
+def _refuse_old(welcome: Welcome, address: str, share: bool) -> None:
+    """A server of protocol 1.x before 1.4 drives one ego only, one before 1.5 no share of
+    the traffic (another major version is refused by the welcome's own checks)."""
     refuse_one_ego_server(welcome, address, "RemoteParallelEnv")
+    if share:
+        refuse_old_server(welcome, address, EGO_SHARE_VERSION, "ego_share", "egos as a share")

@@ -241,6 +241,10 @@ class ReplyChecker:
         self.last_egos: dict[str, Observation] = {}
         """Each ego of `last_frame` by id, as an `Observation` (`ego_observation`): what its
         next observation is judged against."""
+        self.joins = False
+        """The running multi-ego episode's reset named ``ego_share``: egos may join (1.5)."""
+        self.seen: set[str] = set()
+        """Every ego of the running multi-ego episode so far (a joining ego is a new one)."""
 
     def check(self, request: Request | None, reply: Reply) -> Reply:
         """`reply` if it is a valid answer to `request` (None: unknown); else `InvalidReply`."""
@@ -254,20 +258,25 @@ class ReplyChecker:
             self._forget()
             self.last = reply
         elif isinstance(reply, MultiObservation) and isinstance(request, Reset | MultiStep):
+            joins, seen = self.joins, self.seen
             self._forget()
+            if isinstance(request, Reset):
+                joins, seen = "ego_share" in request.options, set()
             self.last_frame = reply
             self.last_egos = {ego.id: ego_observation(reply, ego) for ego in reply.egos}
+            self.joins, self.seen = joins, seen | self.last_egos.keys()
         return reply
 
     def _forget(self) -> None:
         """No episode runs (or a new one starts)."""
         self.last, self.last_frame, self.last_egos = None, None, {}
+        self.joins, self.seen = False, set()
 
     def problems(self, request: Request | None, reply: Reply) -> list[InvalidReply]:
         """Every broken rule of `reply` as the answer to `request` (none: valid)."""
         problems: list[InvalidReply] = []
         rule = _Rules(self.source, problems)
-        many = isinstance(request, Reset) and "egos" in request.options
+        many = isinstance(request, Reset) and request.many_egos
         expected = _MANY_EGOS if many else _ANSWERS.get(type(request), ())
         if expected and not isinstance(reply, expected):
             names = " or ".join(getattr(kind, "TYPE", "?") for kind in expected)
@@ -682,7 +691,7 @@ class _FrameRules:
 
     def ids(self) -> None:
         """Each ego once; at seq 0 as many as asked for, afterwards exactly those still driving
-        before the step, in the stable order."""
+        before the step, in the stable order, then (``ego_share``) any that join."""
         ids = [ego.id for ego in self.frame.egos]
         for i, ego_id in enumerate(ids):
             if ego_id in ids[:i]:
@@ -701,15 +710,28 @@ class _FrameRules:
             if last is not None
             else [c.id for c in request.commands]
         )
-        if set(ids) != set(running):
+        checker = self.checker
+        head, joined = ids[: len(running)], ids[len(running) :]
+        if set(head) != set(running) or (joined and not checker.joins):
+            then = ", then those that join (ego_share)" if checker.joins else ""
             self.rule(
                 where,
                 ids,
-                f"exactly the egos driving before the step, {running}: an ego that ended is "
-                "listed once with its end, then no more (§3.1)",
+                f"exactly the egos driving before the step, {running}{then}: an ego that ended "
+                "is listed once with its end, then no more (§3.1)",
             )
-        elif ids != running:
+            return
+        if head != running:
             self.rule(where, ids, f"the stable order of the previous frame, {running} (§3.1)")
+        for i, ego in enumerate(self.frame.egos[len(running) :], start=len(running)):
+            if ego.id in checker.seen:
+                self.rule(f"{where}[{i}].id", ego.id, "a joining ego is new to the episode (§3.1)")
+            elif _over(ego):
+                self.rule(
+                    f"{where}[{i}].terminated" if ego.terminated else f"{where}[{i}].truncated",
+                    True,
+                    "false: an ego that joins drives (§3.1)",
+                )
 
     def ending(self) -> None:
         """The frame's flags and reason against its egos' ends (§3.1)."""

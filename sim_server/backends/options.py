@@ -195,10 +195,26 @@ class TrafficOptions(ParsedOptions):
     }
 
 
+@dataclass(frozen=True, slots=True)
+class ShareOptions(ParsedOptions):
+    """Egos as a share of the traffic (since protocol 1.5), announced by the backends that
+    offer it: a reset that names ``ego_share`` starts a multi-ego episode (§3.1)."""
+
+    ego_share: float = 0.0
+    """The share of the vehicles that are egos: of those on the road at the hand-over, and of
+    each that enters afterwards; 0 (the default) when the reset does not name it."""
+
+    BOUNDS: ClassVar[Mapping[str, Bounds]] = {
+        "ego_share": Bounds(0.0, 1.0, text="within (0, 1]"),
+    }
+
+
 COMMON_OPTIONS = EpisodeOptions().as_options()
 """The announced defaults of the options every scenario accepts (copy before changing)."""
 TRAFFIC_OPTIONS = TrafficOptions().as_options()
 """The announced defaults of the built-in roads' traffic options (copy before changing)."""
+SHARE_OPTIONS = ShareOptions().as_options()
+"""The announced default of ``ego_share``, for the backends that offer it."""
 
 
 def merge_options(info: ScenarioInfo, given: dict[str, OptionValue]) -> dict[str, OptionValue]:

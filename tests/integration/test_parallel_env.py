@@ -61,3 +61,31 @@ def test_four_egos_on_the_sumo_ring(sumo_server: RunningServer) -> None:
     finally:
         env.close()
     assert time.monotonic() - started < 30.0
+
+
+@pytest.mark.sumo
+def test_a_share_of_cflc_traffic_with_egos_joining(sumo_server: RunningServer) -> None:
+    env = RemoteParallelEnv(
+        sumo_server.address, "cflc", ego_share=0.25, warmup=60.0, max_episode_time=20.0
+    )
+    try:
+        observations, _ = env.reset(seed=2)
+        first = list(env.agents)
+        assert first and set(observations) == set(first) == set(env.possible_agents)
+        joiners: list[str] = []
+        while env.agents:
+            before = list(env.agents)
+            observations, rewards, terminations, _, infos = env.step(
+                {agent: {"acceleration": [0.3]} for agent in before}
+            )
+            new = [agent for agent in observations if agent not in before]
+            assert list(observations)[: len(before)] == before  # then those that join
+            for agent in new:
+                assert infos[agent]["joined"] and rewards[agent] == 0.0
+                assert not terminations[agent] and agent in env.agents
+            joiners += new
+        assert joiners  # ~0.6 veh/s enter, a quarter of them join (the backend tests count)
+        assert env.possible_agents == [*first, *joiners]  # every ego seen, in order
+        api_test(env, num_cycles=50)
+    finally:
+        env.close()

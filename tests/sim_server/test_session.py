@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import msgpack
 import pytest
 
@@ -19,12 +21,14 @@ from protocol.messages import (
     Observation,
     OptionValue,
     Reset,
+    ScenarioInfo,
     Step,
     Welcome,
 )
 from protocol.version import PROTOCOL_VERSION
 from sim_server.backends.base import SINGLE_EGO_ID, Backend
 from sim_server.backends.fake import FakeBackend
+from sim_server.backends.options import SHARE_OPTIONS
 from sim_server.errors import BackendError
 from sim_server.session import Session
 
@@ -324,3 +328,54 @@ def test_a_multi_ego_episode_ends_when_its_last_ego_ends(session: Session) -> No
     assert many.truncated and many.egos[0].truncated and many.reason == "time_limit"
     after = ask(session, MultiStep(many.seq + 1, (Command(SINGLE_EGO_ID, 0.0),)))
     assert error_code(after) == ErrorCode.OUT_OF_ORDER
+
+
+# --------------------------------------------------------------------------- ego_share (1.5)
+
+
+class SharingFake(FakeBackend):
+    """The fake announcing ``ego_share`` (it serves a share with its own egos): what the session
+    itself checks of a share."""
+
+    def scenarios(self) -> tuple[ScenarioInfo, ...]:
+        return tuple(
+            replace(info, options={**info.options, **SHARE_OPTIONS}) for info in super().scenarios()
+        )
+
+
+def test_a_reset_naming_ego_share_is_a_multi_ego_episode() -> None:
+    session = Session(SharingFake())
+    ask(session, Hello(PROTOCOL_VERSION))
+    first = ask(session, Reset("cf", 1, {"ego_share": 0.5, "max_episode_time": 1.0}))
+    assert isinstance(first, MultiObservation) and first.seq == 0
+
+
+@pytest.mark.parametrize(
+    ("options", "words"),
+    [
+        ({"ego_share": 0.5, "egos": 2}, "name egos (a number of egos) or ego_share"),
+        ({"ego_share": 0.0}, "option ego_share must be within (0, 1], got 0"),
+        ({"ego_share": -0.5}, "option ego_share must be within (0, 1], got -0.5"),
+        ({"ego_share": 1.5}, "option ego_share must be within (0, 1], got 1.5"),
+        ({"ego_share": "half"}, "option ego_share must be float, got str"),
+    ],
+)
+def test_a_bad_ego_share_is_refused_and_the_running_episode_goes_on(
+    options: dict[str, OptionValue], words: str
+) -> None:
+    session = Session(SharingFake())
+    ask(session, Hello(PROTOCOL_VERSION))
+    first = ask(session, Reset("cf", 1, {"egos": 2}))
+    assert isinstance(first, MultiObservation)
+    reply = ask(session, Reset("cf", 1, options))
+    assert isinstance(reply, Error) and reply.code == ErrorCode.INVALID_OPTION
+    assert words in reply.message
+    commands = tuple(Command(ego.id, 0.5) for ego in first.egos)
+    assert isinstance(ask(session, MultiStep(1, commands)), MultiObservation)
+
+
+def test_a_backend_that_does_not_offer_ego_share_refuses_it(session: Session) -> None:
+    ask(session, Hello(PROTOCOL_VERSION))
+    reply = ask(session, Reset("cf", 1, {"ego_share": 0.5}))
+    assert isinstance(reply, Error) and reply.code == ErrorCode.INVALID_OPTION
+    assert "has no option 'ego_share'" in reply.message

@@ -20,6 +20,9 @@ one simulation, ``ego.0``, ``ego.1``, ...: on the ring they are slots spread eve
 the roads they enter one after another after the warm-up and are handed over together once the
 last has entered. Each is judged alone (`egos.EgoState`): an ego whose drive ends is reported
 once and taken out, the others go on (docs/backends.md, "Many egos in one SUMO simulation").
+A reset that names ``ego_share`` (protocol 1.5) makes that share of the traffic egos: on the
+ring that many slots; on a road that share of the vehicles on it at the end of the warm-up, then
+of the vehicles that enter, each joining at the end of the decision it entered in (`ShareDraw`).
 """
 
 from __future__ import annotations
@@ -51,7 +54,13 @@ from protocol.messages import (
     Traffic,
 )
 from sim_server.backends.base import Backend, Commands
-from sim_server.backends.options import MAX_EGOS, EpisodeOptions, TrafficOptions, invalid_option
+from sim_server.backends.options import (
+    MAX_EGOS,
+    EpisodeOptions,
+    ShareOptions,
+    TrafficOptions,
+    invalid_option,
+)
 from sim_server.backends.rules import (
     EndRule,
     LaneChangeUnderWay,
@@ -61,8 +70,10 @@ from sim_server.backends.rules import (
 )
 from sim_server.backends.sumo import ssm
 from sim_server.backends.sumo.egos import (
+    QUIET,
     Drive,
     EgoState,
+    ShareDraw,
     collision_partner,
     collision_partners,
     ego_ids,
@@ -135,15 +146,22 @@ class _Episode:
     """Vehicle id -> its minGap (fixed by its type)."""
     ssm_log: Path | None = None
     """Where SUMO's SSM device logs the ego's conflicts (reset option ``ssm``)."""
+    share: ShareDraw | None = None
+    """Egos as a share of the traffic (``ego_share`` on a road): who joins next."""
+    hand_over: float = math.nan
+    """When the client took the first egos over (``ego_share``: the episode's time limit runs
+    from it for those that join later too)."""
 
-    ego: EgoState = field(init=False)
-    """The one ego of a one-ego episode (the first of a multi-ego one)."""
-    ids: frozenset[str] = field(init=False)
+    ids: set[str] = field(init=False)
     """Every ego of the episode, running or not: none of them is `traffic`."""
 
     def __post_init__(self) -> None:
-        self.ego = self.egos[0]
-        self.ids = frozenset(e.id for e in self.egos)
+        self.ids = {e.id for e in self.egos}
+
+    @property
+    def ego(self) -> EgoState:
+        """The one ego of a one-ego episode (the first still driving of a multi-ego one)."""
+        return self.egos[0]
 
 
 class SumoBackend(Backend):
@@ -226,8 +244,13 @@ class SumoBackend(Backend):
         (the reset returns once all have entered, each within ``insertion_timeout``)."""
         if not 1 <= egos <= self.max_egos:
             raise invalid_option(f"option egos must be within 1..{self.max_egos}, got {egos}")
-        ids = ego_ids(egos)
-        first = self._start(scenario, seed, options, ids, many=True)
+        share = ShareOptions.parse(options).ego_share
+        chosen = self._scenarios[scenario]
+        if share and isinstance(chosen, RingScenario):  # that many of the ring's slots
+            egos = max(1, math.floor(share * RingOptions.parse(options).vehicles + 0.5))
+            share = 0.0
+        ids = ego_ids(egos) if not share else ()
+        first = self._start(scenario, seed, options, ids, many=True, share=share)
         episode = self._episode
         assert episode is not None
         try:
@@ -237,7 +260,7 @@ class SumoBackend(Backend):
             raise BackendError(
                 ErrorCode.SIMULATOR_ERROR, f"SUMO failed during reset: {exc}"
             ) from exc
-        reported = zip(ids, first, strict=True)
+        reported = zip([ego.id for ego in episode.egos], first, strict=True)
         return multi_observation(0, first[0].time, reported, False, "", traffic)
 
     def _start(
@@ -248,9 +271,11 @@ class SumoBackend(Backend):
         ids: tuple[str, ...],
         *,
         many: bool,
+        share: float = 0.0,
     ) -> list[Observation]:
-        """Load the scenario and hand the egos `ids` over; their seq-0 observations (`many`:
-        without traffic, which the multi-ego reply carries once)."""
+        """Load the scenario and hand the egos `ids` over (a road's `share`: that share of its
+        traffic instead); their seq-0 observations (`many`: without traffic, which the
+        multi-ego reply carries once)."""
         chosen = self._scenarios[scenario]
         episode_options = EpisodeOptions.parse(options)
         traffic = TrafficOptions.parse(options) if isinstance(chosen, RoadScenario) else None
@@ -270,13 +295,16 @@ class SumoBackend(Backend):
             self._drop_old_logs(keep=log)
             if layout is not None:
                 first = self._place_egos(layout, slots, ids, episode_options, measures, many)
+            elif share:
+                draw = ShareDraw(share, seed)
+                first = self._hand_over_share(draw, episode_options, measures, traffic is not None)
             else:
                 first = self._insert_egos(
                     route, ids, episode_options, measures, one_way=traffic is not None, many=many
                 )
             assert self._episode is not None
             self._episode.ssm_log = log
-            self._sumo.ego_ready(self._api, ids[0])
+            self._sumo.ego_ready(self._api, self._episode.ego.id)
             return first
         except self._errors as exc:
             self._broken(exc)
@@ -424,6 +452,68 @@ class SumoBackend(Backend):
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
         return [self._observe(episode, ego, 0, Events(), action, not many) for ego in egos]
+
+    def _hand_over_share(
+        self, draw: ShareDraw, options: EpisodeOptions, measures: MeasureOptions, one_way: bool
+    ) -> list[Observation]:
+        """A road's egos as a share of its traffic: warm up, take `draw`'s share of the vehicles
+        on the road over (in the order they entered), observe them (seq 0); the vehicles that
+        enter later join in `_step_many`."""
+        api = self._api
+        dt = api.simulation.getDeltaT()
+        substeps = options.steps_per_decision(dt)
+        api.simulationStep(api.simulation.getTime() + options.warmup)
+        on_road = sorted(api.vehicle.getIDList(), key=lambda v: (api.vehicle.getDeparture(v), v))
+        if not on_road:
+            raise BackendError(
+                ErrorCode.INSERTION_FAILED,
+                f"no vehicle on the road after the {options.warmup:g} s warm-up to hand over: "
+                "ask for a longer warmup or a higher flow",
+            )
+        if not options.simulator_drives and EGO_TYPE not in api.vehicletype.getIDList():
+            self._define_ego_type()
+        self._episode = episode = _Episode(
+            dt=dt,
+            substeps=substeps,
+            options=options,
+            measures=measures,
+            egos=[],
+            route_length=0.0,
+            leader_id="",
+            leader_depart=math.nan,
+            many=True,
+            sumo_drives=options.simulator_drives,
+            one_way=one_way,
+            share=draw,
+            hand_over=api.simulation.getTime(),
+        )
+        action = AppliedAction(0.0, 0, 0.0, 0)
+        return [
+            self._observe(episode, self._take_over(episode, vehicle), 0, Events(), action, False)
+            for vehicle in draw.at_hand_over(on_road)
+        ]
+
+    def _take_over(self, episode: _Episode, vehicle: str) -> EgoState:
+        """Make a human driver on the road an ego of the running episode (the client's, unless
+        the simulator drives): the ego's type, SUMO's checks and own lane changes off. It
+        shares the episode's time limit."""
+        api = self._api
+        if not episode.sumo_drives:
+            api.vehicle.setType(vehicle, EGO_TYPE)
+            api.vehicle.setSpeedFactor(vehicle, 1.0)
+            api.vehicle.setSpeedMode(vehicle, SPEED_MODE_NO_CHECKS)
+            api.vehicle.setLaneChangeMode(vehicle, LANE_CHANGE_MODE_REQUESTS_ONLY)
+        offset = api.vehicle.getLanePosition(vehicle) - api.vehicle.getDistance(vehicle)
+        ego = EgoState(
+            vehicle, EndRule(episode.options, episode.hand_over), offset,
+            api.vehicle.getMinGap(vehicle),
+        )  # fmt: skip
+        episode.egos.append(ego)
+        episode.ids.add(vehicle)
+        if episode.route_length == 0.0:
+            edges = api.vehicle.getRoute(vehicle)
+            episode.route_length = sum(api.lane.getLength(f"{edge}_0") for edge in edges)
+        return ego
 
     def _check_ring_entry(self, vehicles: int, ids: tuple[str, ...]) -> None:
         """Every vehicle of the ring entered in the first step (placed, so they must)."""
@@ -718,18 +808,32 @@ class SumoBackend(Backend):
                 (ego_id, obs if obs.reason else ended(obs, EndReason.TIME_LIMIT))
                 for ego_id, obs in reported
             ]
-        traffic = self._traffic(episode)
+        joined = self._join(episode, episode.share, seq) if episode.share and not truncated else []
+        traffic = self._traffic(episode)  # all of the frame observed before anyone leaves
         if endings or truncated:
             self._take_out(
                 [ego_id for ego_id, obs in reported if obs.reason and ego_id not in finals]
             )
             episode.egos = [
                 d.ego for d, (_, obs) in zip(drives, reported, strict=True) if not obs.reason
-            ]
-            episode.done = not episode.egos
+            ] + episode.egos[len(drives) :]  # and those that joined
+        reported += joined
+        episode.done = not episode.egos
         time = self._api.simulation.getTime()
         last = endings[-1].reason if endings and episode.done else ""
         return multi_observation(seq, time, reported, truncated, last, traffic)
+
+    def _join(self, episode: _Episode, draw: ShareDraw, seq: int) -> list[tuple[str, Observation]]:
+        """The vehicles that entered during the decision and join as egos now, at its end
+        (SUMO drove them until then), each with its first observation."""
+        present = set(self._api.vehicle.getIDList())
+        action = AppliedAction(0.0, 0, 0.0, 0)
+        joined = []
+        for vehicle in draw.joining():
+            if vehicle in present:  # not already gone again (a very long decision)
+                ego = self._take_over(episode, vehicle)
+                joined.append((vehicle, self._observe(episode, ego, seq, QUIET, action, False)))
+        return joined
 
     def _drive_many(
         self, episode: _Episode, seq: int, drives: list[Drive]
@@ -747,6 +851,8 @@ class SumoBackend(Backend):
                 for drive in active:
                     drive.applied(*self._apply(episode, drive.ego.id, drive.request))
             api.simulationStep()
+            if episode.share is not None:
+                episode.share.entered += simulation.getDepartedIDList()
             partners = collision_partners(simulation.getCollisions())
             arrived = simulation.getArrivedIDList()
             teleports = simulation.getStartingTeleportIDList()

@@ -5,11 +5,14 @@ Every ego, the one of a one-ego episode (id ``ego``) and each of a multi-ego epi
 under way and its last observation. A decision being simulated is a `Drive` per ego, which
 collects what happened over the decision's simulation steps and turns it into the observation's
 `AppliedAction` and `Events`. The one-ego and the multi-ego paths share both, so an ego is
-judged the same way whether it drives alone or among others.
+judged the same way whether it drives alone or among others. With ``ego_share`` (protocol 1.5)
+a `ShareDraw` picks the vehicles that become egos.
 """
 
 from __future__ import annotations
 
+import math
+import random
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -132,6 +135,40 @@ class Drive:
             lane_change_aborted=self.aborted,
         )
         return action, events
+
+
+class ShareDraw:
+    """Which vehicles are egos at a share of the traffic: a seeded sample of those on the road
+    at the hand-over, then every vehicle that enters adds the share to a credit and joins when
+    the credit reaches 1 (an exact share, spread evenly over the arrivals, starting at a
+    seeded phase)."""
+
+    __slots__ = ("_credit", "_random", "entered", "share")
+
+    def __init__(self, share: float, seed: int) -> None:
+        self.share = share
+        self._random = random.Random(seed)
+        self._credit = self._random.random()
+        self.entered: list[str] = []
+        """Vehicles that entered during the decision being simulated, in their order."""
+
+    def at_hand_over(self, on_road: list[str]) -> list[str]:
+        """round(share x vehicles on the road), at least one, chosen at random (in `on_road`'s
+        order)."""
+        count = max(1, math.floor(self.share * len(on_road) + 0.5))
+        chosen = set(self._random.sample(range(len(on_road)), count))
+        return [vehicle for i, vehicle in enumerate(on_road) if i in chosen]
+
+    def joining(self) -> list[str]:
+        """The vehicles among those that entered since the last call that become egos."""
+        joining = []
+        for vehicle in self.entered:
+            self._credit += self.share
+            if self._credit >= 1.0:
+                self._credit -= 1.0
+                joining.append(vehicle)
+        self.entered.clear()
+        return joining
 
 
 def collision_partner(collisions: Any, ego_id: str) -> str:

@@ -28,6 +28,7 @@ from xml.etree import ElementTree
 from protocol.messages import OptionValue, ScenarioInfo
 from sim_server.backends.options import (
     COMMON_OPTIONS,
+    SHARE_OPTIONS,
     TRAFFIC_OPTIONS,
     Bounds,
     EpisodeOptions,
@@ -72,7 +73,13 @@ class RoadScenario:
     defaults: dict[str, OptionValue] = field(default_factory=dict)
 
     def info(self) -> ScenarioInfo:
-        options = {**COMMON_OPTIONS, **TRAFFIC_OPTIONS, **MEASURE_OPTIONS, **self.defaults}
+        options = {
+            **COMMON_OPTIONS,
+            **SHARE_OPTIONS,
+            **TRAFFIC_OPTIONS,
+            **MEASURE_OPTIONS,
+            **self.defaults,
+        }
         return ScenarioInfo(self.name, self.description, options, ROAD_STEP_LENGTH)
 
     def build(self, options: Mapping[str, OptionValue], cache_dir: Path) -> Path:
@@ -91,7 +98,7 @@ class CustomScenario:
     def info(self) -> ScenarioInfo:
         description = f"user scenario {self.sumocfg} with ego route {self.ego_route!r}"
         step_length = self.step_length()
-        options = {**COMMON_OPTIONS, **MEASURE_OPTIONS}
+        options = {**COMMON_OPTIONS, **SHARE_OPTIONS, **MEASURE_OPTIONS}
         interval = options["decision_interval"]
         assert isinstance(interval, float)
         steps = round(interval / step_length)
@@ -212,7 +219,7 @@ class RingScenario:
 
     def info(self) -> ScenarioInfo:
         common = {k: v for k, v in COMMON_OPTIONS.items() if k not in RING_OMITTED}
-        options = {**common, **RING_OPTIONS, **MEASURE_OPTIONS, **self.defaults}
+        options = {**common, **SHARE_OPTIONS, **RING_OPTIONS, **MEASURE_OPTIONS, **self.defaults}
         return ScenarioInfo(self.name, self.description, options, ROAD_STEP_LENGTH)
 
     def build(self, options: Mapping[str, OptionValue], cache_dir: Path) -> Path:

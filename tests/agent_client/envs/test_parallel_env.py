@@ -192,6 +192,15 @@ def test_bad_arguments_are_usage_errors(toy: ToyServer) -> None:
         RemoteParallelEnv(toy.address, "cf", egos=2, flow=1200.0)
     with pytest.raises(UsageError, match="action_space 'wheel'"):
         RemoteParallelEnv(toy.address, "cf", egos=2, action_space="wheel")
+    with pytest.raises(UsageError, match=r"give egos .* or ego_share"):
+        RemoteParallelEnv(toy.address, "cf")
+    with pytest.raises(UsageError, match=r"give egos .* or ego_share"):
+        RemoteParallelEnv(toy.address, "cf", egos=2, ego_share=0.5)
+    for share in (0.0, 1.5, "half", True):
+        with pytest.raises(UsageError, match="ego_share must be"):
+            RemoteParallelEnv(toy.address, "cf", ego_share=share)  # type: ignore[arg-type]
+    with pytest.raises(UsageError, match="has no option ego_share: its server places"):
+        RemoteParallelEnv(toy.address, "cf", ego_share=0.5)  # the fake places its egos
 
 
 def test_too_many_egos_is_the_servers_refusal(toy: ToyServer) -> None:

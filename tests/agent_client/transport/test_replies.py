@@ -522,3 +522,42 @@ def test_random_multi_ego_episodes_of_the_fake_keep_every_rule() -> None:
             assert isinstance(frame, MultiObservation)
             reasons.update(e.reason for e in frame.egos if e.reason)
     assert reasons == {"collision", "stopped", "time_limit", "end_of_road"}
+
+
+# --------------------------------------------------------------------------- ego_share (1.5)
+
+
+def joined(frame: MultiObservation, ego_id: str = "human0.7", **changes: Any) -> MultiObservation:
+    """`frame` with one more ego appended, as one that joins in it."""
+    newcomer = replace(frame.egos[0], id=ego_id, **changes)
+    return replace(frame, egos=(*frame.egos, newcomer))
+
+
+def share_checker(first: MultiObservation) -> ReplyChecker:
+    check = ReplyChecker(welcome(), "invalid reply from test")
+    check.check(Reset("cf", 1, {"ego_share": 0.25}), first)
+    return check
+
+
+def test_an_ego_share_episode_lets_new_egos_join_after_the_others() -> None:
+    first, after = multi_episode()
+    check = share_checker(first)
+    assert check.check(multi_step(), joined(after)) is not None
+    assert check.seen == {*IDS, "human0.7"}
+    reply = joined(after)
+    order = replace(reply, egos=(reply.egos[3], *reply.egos[:3]))  # the newcomer first
+    assert refused(share_checker(first), multi_step(), order).field == "multi_observation.egos"
+
+
+def test_only_an_ego_share_episode_has_egos_joining() -> None:
+    _, after = multi_episode()
+    error = refused(multi_checker(), multi_step(), joined(after))
+    assert error.field == "multi_observation.egos"
+    assert "exactly the egos driving before the step" in str(error)
+
+
+def test_an_ego_that_joins_drives() -> None:
+    first, after = multi_episode()
+    ended = joined(after, terminated=True, reason="stopped")
+    error = refused(share_checker(first), multi_step(), ended)
+    assert error.field == "multi_observation.egos[3].terminated"

@@ -448,3 +448,84 @@ def test_traci_gives_the_libsumo_multi_stream_bit_for_bit(
             traci_backend, reset(traci_backend, scenario, 5, egos, **changes), lane_changing
         )
         assert [encode(m) for m in got] == [encode(m) for m in expected]
+
+
+# --------------------------------------------------------------------------- ego_share (1.5)
+
+
+def reset_share(
+    backend: SumoBackend, scenario: str, seed: int, share: float, **changes: OptionValue
+) -> MultiObservation:
+    return backend.reset_many(
+        scenario, seed, options(backend, scenario, ego_share=share, **changes), 1
+    )
+
+
+def test_a_share_of_the_road_is_handed_over_after_the_warm_up(backend: SumoBackend) -> None:
+    first = reset_share(backend, "cflc", 2, 0.25, report_traffic=True, warmup=100.0)
+    on_road = libsumo.vehicle.getIDList()
+    egos = [e.id for e in first.egos]
+    assert len(egos) == int(0.25 * len(on_road) + 0.5) > 5
+    assert first.traffic is not None
+    assert sorted([*egos, *first.traffic.id]) == sorted(on_road)  # the rest are the traffic
+    departures = [libsumo.vehicle.getDeparture(ego) for ego in egos]
+    assert departures == sorted(departures)  # in the order they entered
+    for ego in first.egos:
+        assert libsumo.vehicle.getTypeID(ego.id) == EGO_TYPE
+        assert libsumo.vehicle.getSpeedFactor(ego.id) == 1.0
+        assert libsumo.vehicle.getSpeedMode(ego.id) == SPEED_MODE_NO_CHECKS
+        assert libsumo.vehicle.getLaneChangeMode(ego.id) == LANE_CHANGE_MODE_REQUESTS_ONLY
+        assert ego.ego.position == pytest.approx(libsumo.vehicle.getLanePosition(ego.id))
+    again = reset_share(backend, "cflc", 2, 0.25, warmup=100.0)
+    assert [e.id for e in again.egos] == egos  # seeded
+
+
+def test_the_vehicles_that_enter_join_at_the_share(backend: SumoBackend) -> None:
+    first = reset_share(backend, "cflc", 3, 0.25, report_traffic=True, max_episode_time=60.0)
+    seen = {e.id for e in first.egos} | set(first.traffic.id if first.traffic else ())
+    joined: list[str] = []
+    frames = [first]
+
+    def check(multi: MultiObservation) -> None:
+        running = [e.id for e in frames[-1].egos if not e.reason]
+        ids = [e.id for e in multi.egos]
+        assert ids[: len(running)] == running  # those that drove into the step, then the new
+        for ego in multi.egos[len(running) :]:
+            assert ego.id not in joined and not ego.reason
+            assert ego.action.acceleration == 0.0 and not ego.events.collision
+            assert libsumo.vehicle.getTypeID(ego.id) == EGO_TYPE
+            assert libsumo.vehicle.getSpeedMode(ego.id) == SPEED_MODE_NO_CHECKS
+            joined.append(ego.id)
+        assert multi.traffic is not None
+        seen.update(ids, multi.traffic.id)
+        frames.append(multi)
+
+    stream = drive(backend, first, idm({}), check=check)
+    entered = len(seen) - len(first.egos) - len(first.traffic.id if first.traffic else ())
+    assert entered > 20 and abs(len(joined) - 0.25 * entered) <= 1.0  # the share, exactly
+    last = stream[-1]
+    assert last.truncated and last.time == pytest.approx(first.time + 60.0)
+    assert all(e.truncated for e in last.egos if e.reason == EndReason.TIME_LIMIT)
+    assert not any(e.events.collision for m in stream for e in m.egos)  # IDM drives safely
+
+
+def test_on_the_ring_a_share_is_that_many_slots(backend: SumoBackend) -> None:
+    first = reset_share(backend, "ring", 1, 0.5, warmup=5.0)
+    assert [e.id for e in first.egos] == [f"ego.{k}" for k in range(11)]
+
+
+def test_sumo_can_drive_a_share_of_the_road(backend: SumoBackend) -> None:
+    first = reset_share(backend, "cflc", 1, 1.0, ego_driver="sumo", max_episode_time=5.0)
+    assert len(first.egos) == len(libsumo.vehicle.getIDList())
+    drove = {e.id for e in first.egos}
+
+    def check(multi: MultiObservation) -> None:
+        for ego in multi.egos:
+            if ego.id in drove:  # not one that joins in this frame
+                assert ego.action.acceleration_limited_by == "simulator"
+            if not ego.reason:
+                assert libsumo.vehicle.getTypeID(ego.id) != EGO_TYPE  # humans still
+        drove.update(e.id for e in multi.egos)
+
+    stream = drive(backend, first, lambda multi, ego: (3.0, 1), check=check)  # ignored
+    assert stream[-1].truncated and len(stream) == 51
