@@ -10,12 +10,12 @@ gives every vehicle's speed and odometer: the egos' own observations and the hum
   up: 0, 2, 6, 11, 22), spread evenly round the ring and handed over at the end of the 300 s
   warm-up (the wave has formed), then 300 s measured. 0 % is the all-human baseline: one ego
   that SUMO drives as a human (``ego_driver: "sumo"``).
-* ``--scenario cflc``: 2 km, three lanes, 80 km/h, Krauss humans at 700 veh/h per lane, with N
-  = 0 (all human: one SUMO-driven ego), 1, 4, 8, 16 egos. The SUMO backend inserts the N egos
-  at the entry one after another at reset (within seconds on three lanes), so they drive as a
-  bunch among the humans, not as a share of the road's traffic spread along it; the table
-  gives the share of the vehicles on the road they were. The road is warmed up 150 s (it is
-  full by then: 2 km at ~19 m/s), and the episode lasts until the last ego leaves the road.
+* ``--scenario cflc``: 2 km, three lanes, 80 km/h, Krauss humans at 700 veh/h per lane, at AV
+  shares 0, 10, 25, 50 and 100 % (protocol 1.5, ``ego_share``): after a 150 s warm-up (the
+  road is full by then: 2 km at ~19 m/s) that share of the vehicles on the road is handed over,
+  and the same share of the vehicles that enter afterwards joins as they enter, for 300 s.
+  0 % is the all-human baseline: every vehicle an ego that SUMO drives as a human
+  (``ego_share`` 1 with ``ego_driver: "sumo"``), so that it is measured the same way.
 
 The egos' drivers (``--driver``, one or more): ``idm`` (`agent_client.drivers.idm.IDMDriver`,
 its default parameters, one per ego) or a policy file (``runs/NAME/policy.pt``,
@@ -98,8 +98,7 @@ VEHICLE_LENGTH = 5.0
 (``departPos="base"``), so its front is this plus its odometer."""
 NO_STOP_RULE = 3600.0
 """``stop_patience`` (s): the unreasonable-stop end rule never fires within an episode."""
-RING_SHARES = (0.0, 10.0, 25.0, 50.0, 100.0)
-CFLC_EGOS = (0, 1, 4, 8, 16)
+SHARES = (0.0, 10.0, 25.0, 50.0, 100.0)
 CFLC_MARK = 1000.0
 """m: the point of the road whose passing vehicles are counted."""
 CFLC_LENGTH = 2000.0
@@ -211,11 +210,13 @@ def sim_server(cache_dir: Path) -> Iterator[str]:
 class Trace:
     """Every vehicle's speed and unwrapped front position at every step of one episode."""
 
-    agents: frozenset[str]
-    """The egos the client drove (none in the all-human run, whose one ego SUMO drives)."""
+    driven: bool
+    """The client drove the egos (False: the all-human run, whose egos SUMO drives as humans)."""
     start_of: Callable[[str], float]
     """Where a human's odometer starts (m, its front at entry)."""
     ring_length: float | None = None
+    agents: set[str] = field(default_factory=set)
+    """The egos the client drove, every one seen (on cflc they join as they enter)."""
     times: list[float] = field(default_factory=list)
     rows: list[dict[str, tuple[float, float]]] = field(default_factory=list)
     humans: list[frozenset[str]] = field(default_factory=list)
@@ -238,6 +239,11 @@ class Trace:
             raise RuntimeError("the frame has no traffic: the server ignored report_traffic")
         row: dict[str, tuple[float, float]] = {}
         self.ended_last = 0
+        humans = set(traffic.id)
+        if self.driven:
+            self.agents.update(ego.id for ego in frame.egos)
+        else:  # SUMO drives the egos: humans, counted as such when they leave the road
+            humans.update(ego.id for ego in frame.egos if ego.reason in ("", "time_limit"))
         for ego in frame.egos:
             row[ego.id] = (ego.ego.speed, ego.ego.position)
             if ego.events.collision:
@@ -247,7 +253,7 @@ class Trace:
             if (ego.terminated or ego.truncated) and ego.reason != "time_limit":
                 self.ends[ego.reason] += 1
                 self.ended_last += 1
-                self.ego_arrivals += ego.reason == "end_of_road"
+                self.ego_arrivals += self.driven and ego.reason == "end_of_road"
         for vehicle, speed, odometer in zip(
             traffic.id, traffic.speed, traffic.position, strict=True
         ):
@@ -256,7 +262,7 @@ class Trace:
             self._check_gaps(row, traffic.id, traffic.leader, traffic.gap)
         self.times.append(frame.time)
         self.rows.append(row)
-        self.humans.append(frozenset(traffic.id))
+        self.humans.append(frozenset(humans))
         self.ego_counts.append(len(frame.egos))
 
     def _collided(self, now: float, ego: str, other: str) -> None:
@@ -316,14 +322,15 @@ def drive(
     frame = env.last_frame
     assert frame is not None
     trace.record(frame)
-    drivers = {agent: make() for agent in env.agents}
+    drivers: dict[str, Driver] = {}
     for _ in range(max_steps):
         if not env.agents:
             break
         last = env.last_observations
         actions: dict[str, Any] = {}
         for agent in env.agents:
-            acceleration, lane_change = drivers[agent].act(last[agent])
+            driver = drivers.get(agent) or drivers.setdefault(agent, make())  # one that joined
+            acceleration, lane_change = driver.act(last[agent])
             actions[agent] = {"acceleration": [acceleration], "lane_change": lane_change}
         env.step(actions)
         frame = env.last_frame
@@ -420,13 +427,14 @@ def pair_with_baseline(runs: list[dict[str, Any]]) -> None:
 
 def summarise(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per driver and share: each figure's mean, min and max over the seeds."""
-    groups: dict[tuple[str, int], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, float], list[dict[str, Any]]] = {}
     for run in runs:
-        groups.setdefault((run["driver"], run["egos"]), []).append(run)
+        groups.setdefault((run["driver"], run["share_pct"]), []).append(run)
     out = []
-    for (driver, egos), group in groups.items():
-        share = group[0]["share_pct"]
+    for (driver, share), group in groups.items():
+        egos = group[0]["egos"] if len({r["egos"] for r in group}) == 1 else None
         entry: dict[str, Any] = {"driver": driver, "share_pct": share, "egos": egos}
+        entry["egos_per_seed"] = [run["egos"] for run in group]
         entry["seeds"] = [run["seed"] for run in group]
         for name in FIGURES:
             values = [run["figures"][name] for run in group if run["figures"][name] is not None]
@@ -486,7 +494,8 @@ def table(summary: list[dict[str, Any]], scenario: str, tail: float) -> str:
         ]  # fmt: skip
     else:
         heads = [
-            "egos driven by", "egos", "share of the vehicles on the road (%)", "window (s)",
+            "egos driven by", "AV share", "egos in all (per seed)",
+            "share of the vehicles on the road (%)", "window (s)",
             "mean speed, all (m/s)", "humans", "speed std across vehicles, all (m/s)",
             "humans", "humans / all-human, same seed", "arrivals at 2 km, all (veh/h)", "humans",
             "past 1 km, all (veh/h)", "humans", "collisions",
@@ -508,7 +517,9 @@ def table(summary: list[dict[str, Any]], scenario: str, tail: float) -> str:
             ]  # fmt: skip
         else:
             cells = [
-                driver, str(entry["egos"]), _cell(entry, "ego_share", 100, ".1f"),
+                driver, f"{entry['share_pct']:g} %",
+                ", ".join(map(str, entry["egos_per_seed"])) if entry["driver"] != HUMAN else "-",
+                _cell(entry, "ego_share", 100, ".1f"),
                 _cell(entry, "window_s", form=".0f"),
                 _cell(entry, "mean_speed"), _cell(entry, "mean_speed_humans"),
                 _cell(entry, "speed_std"), _cell(entry, "speed_std_humans"),
@@ -653,7 +664,7 @@ FIGURE_PANELS: dict[str, list[tuple[str, str, list[tuple[str, str]]]]] = {
 
 
 def plot_figures(summary: list[dict[str, Any]], scenario: str, path: Path, title: str) -> None:
-    """Each figure against the share (ring) or the number of egos (cflc): per driver the mean
+    """Each figure against the AV share: per driver the mean
     over seeds with its min-max range; hollow markers where egos crashed (they left the road,
     so fewer vehicles, or a shorter episode, are measured); the all-human baseline dotted."""
     plt = _pyplot()
@@ -661,7 +672,7 @@ def plot_figures(summary: list[dict[str, Any]], scenario: str, path: Path, title
     fig, axes = plt.subplots(2, 3, figsize=(14, 7.6), dpi=110)
     base = next(e for e in summary if e["driver"] == HUMAN)
     drivers = list(dict.fromkeys(e["driver"] for e in summary if e["driver"] != HUMAN))
-    x_of = (lambda e: e["share_pct"]) if scenario == "ring" else (lambda e: e["egos"])
+    x_of = lambda e: e["share_pct"]  # noqa: E731
     markers, styles = ("o", "s", "^", "D"), ("-", "--")
     for ax, (name, unit, series) in zip(axes.ravel(), panels, strict=True):
         scale = 100.0 if unit == "%" else 1.0  # shares as percentages
@@ -700,7 +711,7 @@ def plot_figures(summary: list[dict[str, Any]], scenario: str, path: Path, title
             ax.set_ylim(bottom=-0.5, top=max(ax.get_ylim()[1], 1.5))
         ax.set_title(name, fontsize=10)
         ax.set_ylabel(unit)
-        ax.set_xlabel("AV share (%)" if scenario == "ring" else "egos")
+        ax.set_xlabel("AV share (%)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
@@ -729,6 +740,8 @@ def scenario_options(args: argparse.Namespace, interval: float) -> dict[str, Opt
         options.update(
             ring_length=args.ring_length, vehicles=args.vehicles, human_model=args.humans
         )
+    elif args.flow is not None:
+        options["flow"] = args.flow
     return options
 
 
@@ -750,9 +763,9 @@ def measure(
         plan = ring_plan(args)
         length = args.ring_length
     else:
-        plan = [(float(n), n) for n in args.egos]
+        plan = [(share, -1 if share else 0) for share in args.shares]  # -1: the share's
         length = CFLC_LENGTH
-    baseline = DriverChoice(HUMAN, IDMDriver, "SUMO drives the one ego as a human")
+    baseline = DriverChoice(HUMAN, IDMDriver, "SUMO drives every ego as a human")
     jobs: list[tuple[DriverChoice, float, int]] = []
     for share, count in plan:
         if count == 0:
@@ -766,20 +779,20 @@ def measure(
         if count == 0:
             options["ego_driver"] = "sumo"
         max_steps = int(args.duration / choice.decision_interval) + 10
-        env = RemoteParallelEnv(
-            address, args.scenario, egos=max(count, 1), reward=_no_reward, **options
+        many: dict[str, Any] = (
+            {"egos": max(count, 1)} if ring else {"ego_share": share / 100 if count else 1.0}
         )
+        env = RemoteParallelEnv(address, args.scenario, reward=_no_reward, **many, **options)
         try:
             for seed in range(1, args.seeds + 1):
                 began = time.perf_counter()
-                agents = frozenset(env.possible_agents) if count else frozenset()
-                trace = Trace(agents, start_of, length if ring else None)
+                trace = Trace(count != 0, start_of, length if ring else None)
                 handed_over = drive(env, seed, choice.make, trace, max_steps)
                 wall = time.perf_counter() - began
                 run: dict[str, Any] = {
                     "driver": choice.label,
-                    "share_pct": round(100 * count / args.vehicles, 1) if ring else None,
-                    "egos": count,
+                    "share_pct": round(100 * count / args.vehicles, 1) if ring else share,
+                    "egos": count if ring else len(trace.agents),
                     "seed": seed,
                     "wall_s": round(wall, 1),
                     "figures": figures(trace, args.scenario, length, args.tail),
@@ -822,7 +835,7 @@ def main() -> int:
         "--driver", nargs="+", default=["idm"],
         help="idm and/or policy files (runs/NAME/policy.pt); each drives every share",
     )  # fmt: skip
-    parser.add_argument("--shares", type=float, nargs="+", default=list(RING_SHARES), help="%%")
+    parser.add_argument("--shares", type=float, nargs="+", default=list(SHARES), help="%%")
     parser.add_argument(
         "--diagram-shares", type=float, nargs="+", default=[50.0, 100.0],
         help="%% shown in the ring's time-space diagram beside the all-human ring",
@@ -831,7 +844,6 @@ def main() -> int:
         "--diagram-seconds", type=float, default=150.0,
         help="s after the hand-over the time-space diagram shows",
     )  # fmt: skip
-    parser.add_argument("--egos", type=int, nargs="+", default=list(CFLC_EGOS), help="cflc")
     parser.add_argument("--seeds", type=int, default=3, help="seeds 1..N")
     parser.add_argument("--warmup", type=float, help="s (default: ring 300, cflc 150)")
     parser.add_argument("--duration", type=float, default=300.0, help="max_episode_time (s)")
@@ -841,23 +853,20 @@ def main() -> int:
     parser.add_argument("--ring-length", type=float, default=230.0, help="m")
     parser.add_argument("--vehicles", type=int, default=22, help="on the ring")
     parser.add_argument("--humans", choices=("eidm", "idm", "krauss"), default="eidm")
+    parser.add_argument("--flow", type=float, help="cflc: veh/h per lane (default: cflc's 700)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
+    if args.flow is not None and args.scenario != "cflc":
+        parser.error("--flow is an option of cflc (the ring's density is --vehicles)")
     if args.warmup is None:
         args.warmup = 300.0 if args.scenario == "ring" else 150.0
-    if args.scenario == "ring" and 0.0 not in args.shares:
+    if any(not 0.0 <= share <= 100.0 for share in args.shares):
+        parser.error(f"--shares must be within 0..100 %, got {args.shares}")
+    if 0.0 not in args.shares:
         args.shares = [0.0, *args.shares]
-    if args.scenario == "cflc" and 0 not in args.egos:
-        args.egos = [0, *args.egos]
     choices = [choose_driver(spec, args.scenario) for spec in args.driver]
     for choice in choices:
         print(f"driver {choice.label}: {choice.note}", flush=True)
-    if args.scenario == "cflc":
-        print(
-            "cflc: the egos enter at the entry one after another at reset and drive as a "
-            "bunch among the humans: N egos are not an N-vehicle share of the road's traffic",
-            flush=True,
-        )
     began = time.perf_counter()
     cache = Path(tempfile.mkdtemp(prefix="av-bridge-mixed-"))
     try:
@@ -869,7 +878,7 @@ def main() -> int:
     summary = summarise(runs)
     print(table(summary, args.scenario, args.tail))
     args.out.mkdir(parents=True, exist_ok=True)
-    name = f"mixed_autonomy_{args.scenario}"
+    name = f"mixed_autonomy_{args.scenario}" + (f"_flow{args.flow:g}" if args.flow else "")
     notes = [choice.note for choice in choices]
     if args.scenario == "ring":
         errors = [r["figures"]["gap_check_max_error_m"] for r in runs]
@@ -882,11 +891,11 @@ def main() -> int:
         )
     else:
         notes.append(
-            "the egos enter one after another at reset and drive as a bunch among the humans; "
-            "N is not a share of the road's traffic (ego_share: the mean share of the vehicles "
-            "on the road); throughput = arrivals at the end of the road per hour, throughput_edie "
-            "= vehicles past the 1 km mark per hour, over the episode (hand-over to the last "
-            "ego's end)"
+            "ego_share (protocol 1.5): that share of the vehicles on the road at the hand-over, "
+            "then of each that enters; all-human baseline: ego_share 1 with ego_driver sumo "
+            "(SUMO drives every ego as a human); figure ego_share: the mean share of the vehicles "
+            "on the road the client drove; throughput = arrivals at the end of the road per "
+            "hour, throughput_edie = vehicles past the 1 km mark per hour, over the episode"
         )
     notes.append(f"stop_patience {NO_STOP_RULE:g} s: the unreasonable-stop end rule is off")
     report = {
