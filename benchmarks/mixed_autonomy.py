@@ -690,7 +690,7 @@ def plot_figures(summary: list[dict[str, Any]], scenario: str, path: Path, title
                         scale * np.array([e[figure][k] for e in kept])
                         for k in ("mean", "min", "max")
                     )
-                colour = f"C{2 * d + s}"
+                colour = plt.get_cmap("tab20")((2 * d + s) % 20)  # a dark and a light per driver
                 ax.errorbar(
                     x, y, yerr=[y - low, high - y], marker=markers[d % 4], color=colour,
                     linestyle=styles[s % 2], capsize=3, markersize=5,

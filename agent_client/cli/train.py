@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agent_client.cli.common import Commands, add_connection_arguments, existing_folder
+from agent_client.rl.rewards import REWARDS
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 
 if TYPE_CHECKING:
@@ -24,7 +25,11 @@ def add_parser(commands: Commands) -> None:
     )
     add_connection_arguments(train, several=True)
     train.add_argument("--out", type=Path, help="run folder (default runs/SCENARIO-REWARD-SEED)")
-    train.add_argument("--reward", help="safe (default), ra1, ra2, ra3, ra4 or rlc")
+    train.add_argument(
+        "--reward",
+        help=f"one of {', '.join(REWARDS)} (default safe; wave and wave_own read the traffic: "
+        "--option report_traffic=true)",
+    )
     train.add_argument("--episodes", type=int, help="training episodes (default 300)")
     train.add_argument(
         "--minutes", type=float, help="stop after this many minutes (checkpointed; default: none)"

@@ -1,4 +1,5 @@
-"""Reward functions over named observations: the paper's r_a1-r_a4 and r_lc, and our "safe".
+"""Reward functions over named observations: the paper's r_a1-r_a4 and r_lc, our "safe" and
+"wave" (the ring's stop-and-go waves).
 
 Every reward is computed on the learner's side from two consecutive `Observation`s, so any
 simulator behind the protocol gets the same reward. One signature, ``reward(prev, obs, dt)``,
@@ -20,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property, partial
 from typing import Any
 
 from agent_client.constants import JERK_COMFORT_LIMIT, KMH_PER_MS, PAPER_SPEED_LIMIT
@@ -32,6 +34,7 @@ from protocol.messages import (
     Neighbour,
     Neighbours,
     Observation,
+    Traffic,
 )
 
 RewardFn = Callable[[Observation | None, Observation, float], float]
@@ -483,6 +486,122 @@ class SafeReward:
         return -self.worst_step() / (1.0 - gamma)
 
 
+# --------------------------------------------------------------------------- the ring's waves
+
+
+def traffic_speeds(obs: Observation) -> tuple[float, ...]:
+    """Every vehicle's speed (m/s): the ego's and its traffic's (the reset option
+    ``report_traffic``); a `UsageError` if the observation carries no traffic."""
+    if obs.traffic is None:
+        raise UsageError(
+            "this reward reads the traffic's speeds: send the reset option report_traffic "
+            "(agent-client train --option report_traffic=true)"
+        )
+    return (obs.ego.speed, *obs.traffic.speed)
+
+
+@dataclass(frozen=True)
+class WaveReward:
+    """Damp stop-and-go waves (the ring): drive at the traffic's mean speed, smoothly, with a
+    buffer gap, instead of copying the leader's oscillation.
+
+    Per step without a collision::
+
+        r = E(v_mean) * M(v - v_mean) * H(h) * (1 - P(TTC)) * A(a)     in [0, 1]
+
+    and ``-collision_penalty`` (20) on a collision or reversing step.
+
+    - v_mean is the mean speed of every vehicle (the ego and its ``traffic``: send the reset
+      option ``report_traffic``; on a multi-ego ring the traffic is the humans).
+      E = clip(v_mean / v_limit, 0, 1) is the system-level term of Flow's ring reward (Wu et
+      al.: the mean speed of all vehicles), which on a ring only damping raises (everyone's
+      long-run speed is the same there), and which an ego that blocks the ring takes to 0;
+      ``spread_weight`` optionally takes a share sigma / v_limit off it (sigma: the speeds'
+      standard deviation across vehicles). ``own_speed_weight`` w mixes in the ego's own
+      speed, E = (1 - w) E + w clip(v / v_limit, 0, 1): with w = 0 a ring that the ego has
+      brought to a stop is a trap (v = v_mean = 0 earns 0, and so does every small step
+      away from it, M's slope being 0 there), which w > 0 tilts towards driving off.
+    - M = exp(-(v - v_mean)^2 / (2 tol^2)), tol 1 m/s: Stern et al.'s FollowerStopper drives at
+      the traffic's average speed, so that the gap to its leader, not its speed, absorbs the
+      leader's oscillation. An ego that has to brake to a stop in a wave loses the steps it
+      stands, which pays for keeping a buffer; and M is a step reward (the ego's speed against
+      the others' mean now), not a consequence tens of seconds later, so a short horizon
+      learns it.
+    - H (the log-normal headway gate of `safe`, knee at 1.0 s, the evaluation's safety line) and
+      the TTC gate P (below 4 s) keep the ego off its leader's bumper; as in `safe` they are
+      gates, so every collision-free step is >= 0 and crashing never pays.
+    - A(a) = 1 - w_accel * min((a / 1.5 m/s^2)^2, 1): accelerating and braking are what carry
+      a wave on (Flow's ring reward penalises the AV's |a|); 1.5 m/s^2 is the humans' braking.
+
+    Measured on the ring (policies trained with it, at 1-11 of 22 egos): docs/learner.md,
+    "Learning to damp the ring's waves". ``wave_own`` in `REWARDS` is this with w = 0.5.
+    """
+
+    speed_tolerance: float = 1.0
+    """m/s: tol of M, the speed difference to the traffic's mean that keeps 61 % of the step."""
+    desired_headway: float = 1.0
+    """h_d (s): below it the headway gate H falls (1.0 s: the evaluation's safety line)."""
+    headway_sigma: float = 0.3
+    """Log-normal sigma of H below h_d."""
+    ttc_threshold: float = 4.0
+    """s: TTC below this costs part of the step."""
+    accel_scale: float = 1.5
+    """m/s^2: |a| at which the acceleration gate takes its full share."""
+    accel_weight: float = 0.5
+    """Share of the step lost at |a| >= accel_scale (quadratic below), in [0, 1]."""
+    spread_weight: float = 0.0
+    """Factor of sigma / v_limit taken off E (0: E is the mean speed alone)."""
+    own_speed_weight: float = 0.0
+    """Share of E that is the ego's own speed over the limit, in [0, 1]."""
+    collision_penalty: float = 20.0
+    """Cost of a collision (or of reversing)."""
+    fallback_speed_limit: float = REFERENCE_SPEED
+    """m/s: used if the observation carries no positive speed limit."""
+
+    def __post_init__(self) -> None:
+        if min(self.speed_tolerance, self.desired_headway, self.headway_sigma) <= 0.0:
+            raise ValueError("speed_tolerance, desired_headway and headway_sigma must be positive")
+        if self.ttc_threshold <= 0.0 or self.accel_scale <= 0.0:
+            raise ValueError("ttc_threshold and accel_scale must be positive")
+        if not 0.0 <= self.accel_weight <= 1.0:
+            raise ValueError(f"accel_weight must be within [0, 1], got {self.accel_weight}")
+        if min(self.spread_weight, self.collision_penalty) < 0.0:
+            raise ValueError("spread_weight and collision_penalty must be non-negative")
+        if not 0.0 <= self.own_speed_weight <= 1.0:
+            raise ValueError(f"own_speed_weight must be within [0, 1], got {self.own_speed_weight}")
+
+    def __call__(self, prev: Observation | None, obs: Observation, dt: float) -> float:
+        speeds = traffic_speeds(obs)
+        if is_collision(obs) or obs.ego.speed < REVERSE_SPEED:
+            return -self.collision_penalty
+        mean = math.fsum(speeds) / len(speeds)
+        match = math.exp(-(((obs.ego.speed - mean) / self.speed_tolerance) ** 2) / 2.0)
+        gates = self._gates.headway_score(obs) * (1.0 - self._gates.ttc_cost(obs))
+        accel = 1.0 - self.accel_weight * min((obs.ego.acceleration / self.accel_scale) ** 2, 1.0)
+        return self.efficiency(obs) * match * gates * accel
+
+    @cached_property
+    def _gates(self) -> SafeReward:
+        """`safe`'s headway and TTC gates with this reward's knee and threshold."""
+        return SafeReward(
+            desired_headway=self.desired_headway,
+            headway_sigma=self.headway_sigma,
+            ttc_threshold=self.ttc_threshold,
+        )
+
+    def efficiency(self, obs: Observation) -> float:
+        """E in [0, 1]: the traffic's mean speed over the limit, less its spread if weighted, mixed
+        with the ego's own speed over the limit if weighted."""
+        speeds = traffic_speeds(obs)
+        limit = obs.ego.speed_limit if obs.ego.speed_limit > 0.0 else self.fallback_speed_limit
+        mean = math.fsum(speeds) / len(speeds)
+        spread = math.sqrt(math.fsum((v - mean) ** 2 for v in speeds) / len(speeds))
+        speed = min(max(mean / limit, 0.0), 1.0)
+        system = speed * (1.0 - min(self.spread_weight * spread / limit, 1.0))
+        own = min(max(obs.ego.speed / limit, 0.0), 1.0)
+        return (1.0 - self.own_speed_weight) * system + self.own_speed_weight * own
+
+
 # --------------------------------------------------------------------------- registry
 
 REWARDS: dict[str, Callable[..., RewardFn]] = {
@@ -492,6 +611,8 @@ REWARDS: dict[str, Callable[..., RewardFn]] = {
     "ra4": MagnifiedReward,
     "rlc": LaneChangeReward,
     "safe": SafeReward,
+    "wave": WaveReward,
+    "wave_own": partial(WaveReward, own_speed_weight=0.5),
 }
 """Reward factories by name; keyword parameters are the dataclass fields."""
 
@@ -513,7 +634,8 @@ def make_reward(name: str = DEFAULT_REWARD, **params: float | None) -> RewardFn:
 
 def steady_state(speed: float, headway: float, dt: float = 0.1) -> tuple[Observation, Observation]:
     """Two consecutive observations of ideal following: constant `speed` (m/s, also the speed
-    limit) at time headway `headway` (s) behind a leader of the same speed, no events."""
+    limit) at time headway `headway` (s) behind a leader of the same speed, no events; the
+    leader is the traffic (``report_traffic``), so the traffic's mean speed is `speed` too."""
     absent = Neighbour(False, 200.0, 0.0, 0.0)
     leader = Neighbour(True, headway * speed, 0.0, speed, "leader")
     neighbours = Neighbours(absent, absent, leader, absent, absent, absent)
@@ -521,7 +643,11 @@ def steady_state(speed: float, headway: float, dt: float = 0.1) -> tuple[Observa
 
     def at(seq: int) -> Observation:
         ego = Ego(speed, 0.0, 0, 1, speed * dt * seq, speed)
-        return Observation(seq, dt * seq, ego, neighbours, Events(), action)
+        ahead = headway * speed + 5.0 + speed * dt * seq
+        traffic = Traffic(
+            ("leader",), ("human",), (0,), (ahead,), (speed,), (0.0,), ("",), (200.0,), (0.0,)
+        )
+        return Observation(seq, dt * seq, ego, neighbours, Events(), action, traffic=traffic)
 
     return at(1), at(2)
 
