@@ -101,6 +101,8 @@ def run_one(
         "servers": servers,
         "eval_servers": eval_servers,
         "evaluation_share": trainer.profile.evaluation_share(),
+        "evaluation_episodes_run": sum(int(e["episodes"]) for e in evaluations),
+        "evaluation_episodes_saved": sum(int(e.get("episodes_saved", 0)) for e in evaluations),
         "profile": trainer.profile.to_dict(),
         "last_evaluation": last,
         "evaluations": evaluations,
@@ -188,8 +190,9 @@ def summary_line(result: dict[str, Any]) -> str:
 def table(results: list[dict[str, Any]]) -> str:
     lines = [
         "| reward | seed | converged at (min / episode / env steps) | collisions/ep | jerk>5.6 "
-        "| headway<1s | speed / IDM | speed / ceiling | evaluations' share |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| headway<1s | speed / IDM | speed / ceiling | evaluations' share "
+        "| evaluations (episodes run / saved by screening) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in results:
         last = r["last_evaluation"] or {}
@@ -206,7 +209,9 @@ def table(results: list[dict[str, Any]]) -> str:
             f"| {100 * last.get('headway_share_below_1s', float('nan')):.2f}% "
             f"| {last.get('speed_ratio_to_idm', float('nan')):.3f} "
             f"| {last.get('speed_ratio_to_ceiling', float('nan')):.3f} "
-            f"| {100 * r['evaluation_share']:.0f}% |"
+            f"| {100 * r['evaluation_share']:.0f}% "
+            f"| {len(r['evaluations'])} ({r['evaluation_episodes_run']} / "
+            f"{r['evaluation_episodes_saved']}) |"
         )
     return "\n".join(lines)
 

@@ -6,8 +6,10 @@ evaluation report applies the same criteria to the policy against its baseline.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
+from agent_client.evaluation.metrics import EpisodeSummary
 from agent_client.evaluation.paper import DRL_JERK_SHARE_ABOVE_LIMIT
 
 JERK_TARGET = DRL_JERK_SHARE_ABOVE_LIMIT
@@ -16,6 +18,9 @@ HEADWAY_TARGET = 0.05
 """Share of time headways under 1 s allowed."""
 CEILING_TARGET = 0.98
 """Average speed required, as a share of the leader-at-entry ceiling."""
+BOUND_SLACK = 1e-3
+"""Relative margin on a speed bound in `FailureScreen`: measurement at the road's end (the
+last observation, the leader's arrival step) may put a driver a hair above its ceiling."""
 
 
 def targets_met(policy: Mapping[str, float], idm: Mapping[str, float]) -> dict[str, bool]:
@@ -30,3 +35,50 @@ def targets_met(policy: Mapping[str, float], idm: Mapping[str, float]) -> dict[s
         "as_fast_as_idm": policy["average_speed"] >= idm["average_speed"],
         "near_ceiling": policy["speed_ratio_to_ceiling"] >= CEILING_TARGET,
     }
+
+
+@dataclass(frozen=True)
+class FailureScreen:
+    """Tells, from the episodes an evaluation has finished, when it can no longer pass.
+
+    Exact, not a guess: a target counts as failed only when the best the remaining episodes can
+    do (no jerk or headway exceedance in the longest episode possible, the speed bound on every
+    seed) cannot lift the figures over it, so stopping there never loses a pass.
+    """
+
+    seeds: int
+    """Episodes in the whole evaluation."""
+    idm_speed: float
+    """IDM's average speed on the same seeds: the `as_fast_as_idm` target."""
+    max_steps: int | None = None
+    """The most steps an episode can last (the scenario's time limit); None: jerk and headway
+    are judged only at a collision or at the end."""
+    speed_bounds: Sequence[float] | None = None
+    """Per seed (in evaluation order), the highest average speed any driver can reach: on one
+    lane the leader-at-entry ceiling, which IDM's episode on that seed measured. None where a
+    driver can pass its leader (several lanes): the speed targets are judged at the end."""
+
+    def failed(self, done: Sequence[EpisodeSummary], remaining: Sequence[int]) -> str | None:
+        """The first target that `done` has already failed, whatever the seed indices in
+        `remaining` give; None while every target can still be met."""
+        if any(s.collisions for s in done):
+            return "no_collisions"
+        left = len(remaining)
+        if self.max_steps is not None:
+            steps = sum(s.steps for s in done) + left * self.max_steps
+            exceeded = sum(s.jerk_share_above_limit * s.steps for s in done)
+            if steps and exceeded / steps > JERK_TARGET:
+                return "comfortable"
+            samples = sum(s.headway_samples for s in done) + left * (self.max_steps + 1)
+            below = sum(round(s.headway_share_below_1s * s.headway_samples) for s in done)
+            if samples and below / samples > HEADWAY_TARGET:
+                return "safe_headway"
+        if self.speed_bounds is not None and done:
+            bound = (1 + BOUND_SLACK) * sum(self.speed_bounds[i] for i in remaining)
+            if (sum(s.average_speed for s in done) + bound) / self.seeds < self.idm_speed:
+                return "as_fast_as_idm"
+            ratios = [s.speed_ratio_to_ceiling for s in done]
+            best_ratios = sum(r or 0.0 for r in ratios) + (1 + BOUND_SLACK) * left
+            if None not in ratios and best_ratios / self.seeds < CEILING_TARGET:
+                return "near_ceiling"
+        return None

@@ -95,6 +95,17 @@ class TrainConfig:
     """Evaluate only when the last `eval_gate` training episodes ended without a collision (a
     policy that still crashes with exploration noise is not worth `eval_episodes` greedy ones); 0
     evaluates every `eval_every` episodes regardless."""
+    eval_screen: bool = True
+    """End an evaluation as soon as it has failed a target for certain, whatever its remaining
+    episodes give (`agent_client.evaluation.targets.FailureScreen`); False: only at its first
+    collision. A pass is unchanged: every episode, every target."""
+    eval_budget: float | None = 0.4
+    """Evaluation env steps per training env step after a failed evaluation: the next waits
+    until training has driven the failed one's steps / `eval_budget` more (an evaluation step
+    costs about half a training step, no update: 0.4 keeps them near 15 % of the time). After a
+    pass the next runs when due, so passes in a row stay `eval_every` apart. The same
+    evaluations of `eval_episodes` episodes, fewer while the policy fails; counted in steps, not
+    seconds, so a run stays repeatable. None: evaluate whenever due."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
     stop_when_converged: bool = False
@@ -154,6 +165,8 @@ class TrainConfig:
                 f"egos {self.egos} needs sampling = local: the Ray sampling workers drive one "
                 "ego each (train many egos without --sampling ray)"
             )
+        if self.eval_budget is not None and not self.eval_budget > 0:
+            raise UsageError(f"eval_budget must be > 0 (or None: no limit), got {self.eval_budget}")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise UsageError(f"max_minutes must be > 0, got {self.max_minutes}")
         if self.decision_interval <= 0:

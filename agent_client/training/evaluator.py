@@ -5,6 +5,10 @@ With servers of its own (`agent-client train --eval-server`), an evaluation adva
 per training iteration on each of them: its requests are sent with the training step's and
 answered while the learner updates, so it costs the learner only choosing the action and reading
 the reply. Without, `run` drives every episode at once and training waits.
+
+A job with a `screen` ends as soon as it has certainly failed (`EvaluationJob.screen`): the
+episodes left could not change the verdict, and run inline they are time the learner does not
+get.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from typing import Any
 from agent_client.drivers.episode import Driver, Episode
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.evaluation.metrics import EpisodeSummary, episode_summary
+from agent_client.evaluation.targets import FailureScreen
 from protocol.messages import Observation
 
 
@@ -33,6 +38,11 @@ class EvaluationJob:
     """End the evaluation at its first collision: it has failed, the rest would not change it.
     The replies in flight on the other servers are read first; the summaries are those of the
     episodes that finished (the aggregate's ``episodes`` says how many)."""
+    screen: FailureScreen | None = None
+    """End the evaluation as soon as the finished episodes fail a target whatever the others
+    give (`FailureScreen`; a collision among them). Read the same way as `stop_on_collision`."""
+    stopped: str | None = None
+    """Set when the evaluation ended early: the target it had failed for certain."""
 
 
 @dataclass
@@ -91,7 +101,7 @@ class Evaluator:
         job = self.job
         if job is None:
             return None
-        crashed = False
+        finished = False
         for index, env in enumerate(self.envs):  # every reply in flight is read, even after a crash
             sent, self._sent[index] = self._sent[index], None
             running = self._running[index]
@@ -104,11 +114,23 @@ class Evaluator:
             running.obs, reward = env.receive_observation()
             running.episode.add(running.obs, reward)
             if running.obs.terminated or running.obs.truncated:
-                self._done[running.seed_index] = summary = episode_summary(running.episode)
+                self._done[running.seed_index] = episode_summary(running.episode)
                 self._running[index] = None
-                crashed = crashed or (job.stop_on_collision and summary.collisions > 0)
-        if crashed or len(self._done) == len(job.seeds):
+                finished = True
+        if finished and job.stopped is None and len(self._done) < len(job.seeds):
+            job.stopped = self._failed(job)
+        if job.stopped is not None or len(self._done) == len(job.seeds):
             return self._finish(job)
+        return None
+
+    def _failed(self, job: EvaluationJob) -> str | None:
+        """The target the finished episodes have failed for certain, if the job screens."""
+        done = list(self._done.values())
+        if job.screen is not None:
+            remaining = [i for i in range(len(job.seeds)) if i not in self._done]
+            return job.screen.failed(done, remaining)
+        if job.stop_on_collision and any(s.collisions for s in done):
+            return "no_collisions"
         return None
 
     def _finish(self, job: EvaluationJob) -> tuple[EvaluationJob, list[EpisodeSummary]]:

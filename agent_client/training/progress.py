@@ -45,6 +45,10 @@ class Progress:
     evaluations: list[dict[str, Any]] = field(default_factory=list)
     reconnects: int = 0
     failed_episodes: int = 0
+    evaluation_steps: int = 0
+    """Env steps the policy's evaluations drove."""
+    evaluation_resume_step: int = 0
+    """After a failed evaluation, no other before this training step (`TrainConfig.eval_budget`)."""
 
 
 @dataclass
@@ -60,10 +64,15 @@ class Profile:
     def total(self) -> float:
         return sum(self.seconds.values()) + self.blocking_evaluation
 
+    @property
+    def evaluation_seconds(self) -> float:
+        """Seconds evaluations took: their part of the iterations plus the blocking ones."""
+        return self.seconds["evaluation"] + self.blocking_evaluation
+
     def evaluation_share(self) -> float:
         """The share of the loop's time that evaluations took (concurrent and blocking)."""
         total = self.total
-        return (self.seconds["evaluation"] + self.blocking_evaluation) / total if total else 0.0
+        return self.evaluation_seconds / total if total else 0.0
 
     def to_dict(self) -> dict[str, Any]:
         total = self.total
@@ -108,4 +117,9 @@ def evaluation_line(evaluation: dict[str, Any]) -> str:
         f"jerk>5.6 {100 * evaluation['jerk_share_above_limit']:.2f}%, "
         f"headway<1s {100 * evaluation['headway_share_below_1s']:.2f}% | "
         f"passed: {', '.join(passed) or 'none'} | in a row: {evaluation['passed_in_a_row']}"
+        + (
+            f" | stopped after {evaluation['episodes']} episodes: {evaluation['stopped']} failed"
+            if evaluation.get("stopped")
+            else ""
+        )
     )

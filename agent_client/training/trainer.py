@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import signal
 import time
 from collections import deque
@@ -39,7 +40,7 @@ from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
 from agent_client.errors import FeatureMismatch, ServerError, ServerUnavailable, UsageError
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_summary
-from agent_client.evaluation.targets import targets_met
+from agent_client.evaluation.targets import FailureScreen, targets_met
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LaneChoice
@@ -135,6 +136,8 @@ class Trainer:
         self.env: RemoteEnv = self.vec.envs[0]
         """Where pre-training and inline evaluations run."""
         multi_lane = self._multi_lane()
+        self._one_lane = not multi_lane
+        """On one lane nobody passes the leader-at-entry: its ceiling bounds any driver's speed."""
         features = config.features if config.features != "auto" else ("lc" if multi_lane else "cf")
         lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
         every = config.lane_decision_every if lane_change else 1
@@ -157,6 +160,10 @@ class Trainer:
         self.profile = Profile()
         self.q_bound = q_upper_bound(config.reward, config.learner.gamma)
         self.idm_eval: dict[str, float] | None = None
+        self.idm_speeds: list[float] = []
+        """IDM's average speed per evaluation seed: the same seeds' figure for a stopped one."""
+        self.idm_ceilings: list[float] | None = None
+        """IDM's leader-at-entry ceiling per evaluation seed (None where one is missing)."""
         # The leader-at-entry ceiling costs the server a run-on of up to ~100 ms at every
         # episode end: only the evaluations, whose targets use it, ask for it.
         reset_options = {"report_ceiling": False} if _offers(self.env, "report_ceiling") else {}
@@ -190,6 +197,9 @@ class Trainer:
         self._updates_due = 0
         self._losses: list[float] = []
         self._evaluation_wanted = False
+        self._evaluation_due = False
+        """An evaluation is due but waits for the gate or for `eval_budget`."""
+        self._evaluation_spent_before = 0.0
         self._failures_in_a_row = 0
         self._recent_collisions: deque[bool] = deque(maxlen=max(config.eval_gate, 1))
         self._finished_evaluation: tuple[EvaluationJob, list[EpisodeSummary]] | None = None
@@ -389,11 +399,19 @@ class Trainer:
         every = self.config.eval_every
         learning = progress.global_step >= self.config.learner.learning_starts
         if every > 0 and progress.episode % every == 0 and learning and self._gate_open():
-            self._evaluation_wanted = True
+            self._evaluation_due = True
+        if self._evaluation_due and self._gate_open() and self._within_budget():
+            self._evaluation_due, self._evaluation_wanted = False, True
         if self._evaluation_wanted:
             self._start_policy_evaluation(log)
         if progress.episode % self.config.checkpoint_every == 0:
             self._checkpoint()
+
+    def _within_budget(self) -> bool:
+        """Whether the wait that `eval_budget` sets after a failed evaluation is over (after a
+        pass there is none: a run of passes is what convergence needs, and spreading it out
+        would ask more of it than `converged_evals` in a row)."""
+        return self.progress.global_step >= self.progress.evaluation_resume_step
 
     def _gate_open(self) -> bool:
         """No collision in the last `eval_gate` training episodes."""
@@ -464,13 +482,33 @@ class Trainer:
             "global_step": self.progress.global_step,
             "policy_state": state,
         }
-        job = EvaluationJob("policy", driver, self._eval_seeds(), context, stop_on_collision=True)
+        seeds = self._eval_seeds()
+        # Inline, an evaluation blocks training: it ends once certainly failed. On servers of
+        # its own it costs the learner little, and keeps all its episodes, as before.
+        inline = self.evaluator is None
+        screen = self._screen(len(seeds)) if self.config.eval_screen and inline else None
+        job = EvaluationJob("policy", driver, seeds, context, stop_on_collision=True, screen=screen)
+        self._evaluation_spent_before = self.profile.evaluation_seconds
         if self.evaluator is not None:
             self.evaluator.start(job)
             return
         summaries = self._resilient(lambda: self._run_inline(job, self.vec.envs))
         self.collector.drop_episodes()  # the evaluation used the training servers
         self._evaluation_done(job, summaries, log)
+
+    def _screen(self, seeds: int) -> FailureScreen | None:
+        """What lets an evaluation stop once it has certainly failed: the scenario's time limit
+        bounds an episode's steps, and on one lane IDM's ceilings bound every seed's speed."""
+        assert self.idm_eval is not None
+        limit = self.env.scenario_options.get("max_episode_time")
+        max_steps = (
+            math.ceil(float(limit) / self.config.decision_interval) + 10
+            if isinstance(limit, int | float) and not isinstance(limit, bool)
+            else None
+        )
+        ceilings = self.idm_ceilings
+        bounds = ceilings if self._one_lane and ceilings and len(ceilings) == seeds else None
+        return FailureScreen(seeds, self.idm_eval["average_speed"], max_steps, bounds)
 
     def _run_inline(
         self, job: EvaluationJob, envs: Sequence[RemoteEnv] | None = None
@@ -483,6 +521,11 @@ class Trainer:
 
     def _set_idm_baseline(self, summaries: list[EpisodeSummary]) -> None:
         self.idm_eval = aggregate(summaries)
+        ceilings = [s.ceiling_speed for s in summaries]
+        self.idm_speeds = [s.average_speed for s in summaries]
+        self.idm_ceilings = [c for c in ceilings if c is not None]
+        if len(self.idm_ceilings) != len(ceilings):
+            self.idm_ceilings = None
         (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
 
     def _evaluation_done(
@@ -496,9 +539,19 @@ class Trainer:
         assert self.idm_eval is not None
         result = aggregate(summaries)
         met = targets_met(result, self.idm_eval)
+        if job.stopped is not None:  # failed for certain, whatever the partial figures say
+            met[job.stopped] = False
+        complete = len(summaries) == len(job.seeds)
+        seconds = self.profile.evaluation_seconds - self._evaluation_spent_before
+        steps = sum(s.steps for s in summaries)
         progress = self.progress
+        progress.evaluation_steps += steps
         progress.wall_time = time.monotonic() - self._started
-        progress.passed_in_a_row = progress.passed_in_a_row + 1 if all(met.values()) else 0
+        passes = complete and all(met.values())
+        progress.passed_in_a_row = progress.passed_in_a_row + 1 if passes else 0
+        budget = self.config.eval_budget
+        if budget is not None and not passes:  # wait for training to outweigh what it cost
+            progress.evaluation_resume_step = progress.global_step + math.ceil(steps / budget)
         score = sum(met.values()) + result["speed_ratio_to_ceiling"]
         if score >= progress.best_score:
             progress.best_score = score
@@ -508,9 +561,14 @@ class Trainer:
             "global_step": job.context["global_step"],
             "wall_time": progress.wall_time,
             **result,
-            "speed_ratio_to_idm": result["average_speed"] / self.idm_eval["average_speed"],
+            "speed_ratio_to_idm": result["average_speed"] / self._idm_speed_on(summaries),
             **{f"target_{name}": passed for name, passed in met.items()},
             "passed_in_a_row": progress.passed_in_a_row,
+            "stopped": job.stopped or "",
+            "episodes_saved": len(job.seeds) - len(summaries),
+            "steps": steps,
+            "seconds": seconds,
+            "evaluation_share": self.profile.evaluation_share(),
         }
         progress.evaluations.append(evaluation)
         log.evaluation(evaluation)
@@ -518,6 +576,17 @@ class Trainer:
         if self._evaluation_wanted:
             self._start_policy_evaluation(log)
         self._check_convergence()
+
+    def _idm_speed_on(self, summaries: list[EpisodeSummary]) -> float:
+        """IDM's average speed on the seeds these episodes drove (all of them unless an
+        evaluation stopped early, or IDM's per-seed figures are unknown)."""
+        assert self.idm_eval is not None
+        indices = [s.episode for s in summaries]
+        if len(indices) == len(self.idm_speeds) or not all(
+            0 <= i < len(self.idm_speeds) for i in indices
+        ):
+            return self.idm_eval["average_speed"]
+        return float(np.mean([self.idm_speeds[i] for i in indices]))
 
     def _check_convergence(self) -> None:
         progress = self.progress
@@ -547,6 +616,8 @@ class Trainer:
             "rng": _plain(self.rng.bit_generator.state),
             "progress": _plain(dataclasses.asdict(self.progress)),
             "idm_eval": self.idm_eval,
+            "idm_speeds": self.idm_speeds,
+            "idm_ceilings": self.idm_ceilings,
             "config": self.config.to_dict(),
         }
         save_checkpoint(self.out / "checkpoint.pt", state)
@@ -568,6 +639,8 @@ class Trainer:
         self.rng.bit_generator.state = state["rng"]
         self.progress = Progress(**state["progress"])
         self.idm_eval = state["idm_eval"]
+        self.idm_speeds = state.get("idm_speeds") or []
+        self.idm_ceilings = state.get("idm_ceilings")
         self.say(
             f"resumed {self.out} at episode {self.progress.episode}, "
             f"step {self.progress.global_step}, {len(self.buffer)} transitions in the buffer"

@@ -9,6 +9,8 @@ import pytest
 
 from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
+from agent_client.evaluation.metrics import aggregate
+from agent_client.evaluation.targets import FailureScreen, targets_met
 from agent_client.training.evaluator import EvaluationJob, Evaluator
 from protocol.messages import Observation
 from tests.agent_client.conformance.toys import ToyServer, zero_reward
@@ -107,3 +109,22 @@ def test_after_an_early_stop_every_connection_is_ready_for_the_next_request() ->
         finally:
             for env in envs:
                 env.close()
+
+
+def test_a_screened_evaluation_ends_once_it_has_certainly_failed(envs: list[RemoteEnv]) -> None:
+    everything = Evaluator(envs).run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    speed = sum(s.average_speed for s in everything) / len(SEEDS)
+    # Bounds no faster than IDM itself on every seed, but a target just above it: the first
+    # episodes already show the average cannot get there.
+    bounds = [s.average_speed for s in everything]
+    hopeless = FailureScreen(len(SEEDS), 1.05 * speed, speed_bounds=bounds)
+    job = EvaluationJob("idm", IDMDriver(), SEEDS, screen=hopeless)
+    stopped = Evaluator(envs).run(job)
+    assert job.stopped == "as_fast_as_idm"
+    assert 1 <= len(stopped) < len(SEEDS)
+    reachable = FailureScreen(len(SEEDS), speed, speed_bounds=bounds)  # IDM exactly: it can
+    job = EvaluationJob("idm", IDMDriver(), SEEDS, screen=reachable)
+    Evaluator(envs).run(job)
+    assert job.stopped != "as_fast_as_idm"
+    if job.stopped is not None:  # the toy road's IDM is far from its ceiling: that may show
+        assert not targets_met(aggregate(everything), {"average_speed": speed})[job.stopped]

@@ -1,0 +1,77 @@
+"""When the trainer evaluates: after a failed evaluation `eval_budget` makes the next wait until
+training has outweighed it (later, never fewer episodes each), and every evaluation row says
+how many of its episodes ran and why it stopped; against a live ``sim-server --backend fake``."""
+
+from __future__ import annotations
+
+from itertools import pairwise
+from pathlib import Path
+
+import pytest
+
+from agent_client.errors import UsageError
+from agent_client.training.config import TrainConfig, apply_overrides
+from agent_client.training.run_log import read_rows
+from agent_client.training.trainer import Trainer
+from tests.conftest import RunningServer
+
+FAST = {
+    "episodes": 16,
+    "eval_every": 1,
+    "eval_episodes": 2,
+    "eval_gate": 0,
+    "checkpoint_every": 50,
+    "scenario_options": {"max_episode_time": 3.0},
+    "learner": {"learning_starts": 32, "batch_size": 32, "compile": False},
+}
+
+
+def train(address: str, out: Path, **changes: object) -> Trainer:
+    config = apply_overrides(apply_overrides(TrainConfig(), FAST), dict(changes))
+    trainer = Trainer(config, address, out, timeout_s=5.0)
+    try:
+        trainer.run()
+    finally:
+        trainer.close()
+    return trainer
+
+
+def test_the_budget_postpones_the_evaluation_after_a_failed_one(
+    fake_server: RunningServer, tmp_path: Path
+) -> None:
+    free = train(fake_server.address, tmp_path / "free", eval_budget=None)
+    held = train(fake_server.address, tmp_path / "held", eval_budget=0.2)
+    assert len(held.progress.evaluations) < len(free.progress.evaluations)
+    assert len(held.progress.evaluations) >= 1  # the first always runs
+    for trainer in (free, held):
+        rows = read_rows(trainer.out / "evaluations.csv")
+        assert sum(int(r["steps"]) for r in rows) == trainer.progress.evaluation_steps
+        assert all(int(r["episodes"]) + int(r["episodes_saved"]) == 2 for r in rows)
+    # After a failed evaluation training drove its steps / budget before the next one began
+    # (inline, no training step passes during an evaluation).
+    rows = read_rows(held.out / "evaluations.csv")
+    for before, after in pairwise(rows):
+        if int(before["passed_in_a_row"]) == 0:
+            waited = int(after["global_step"]) - int(before["global_step"])
+            assert waited >= int(before["steps"]) / 0.2
+
+
+def test_a_stopped_evaluation_is_recorded_as_a_failure_of_its_target(
+    fake_server: RunningServer, tmp_path: Path
+) -> None:
+    trainer = train(fake_server.address, tmp_path / "run", eval_budget=None)
+    rows = read_rows(tmp_path / "run" / "evaluations.csv")
+    assert rows
+    for row in rows:
+        if row["stopped"]:
+            assert row[f"target_{row['stopped']}"] == "False"
+            assert int(row["passed_in_a_row"]) == 0
+        else:
+            assert int(row["episodes_saved"]) == 0
+    assert trainer.progress.evaluation_steps > 0
+
+
+@pytest.mark.parametrize("budget", [0.0, -0.5])
+def test_a_budget_must_be_positive(budget: float) -> None:
+    with pytest.raises(UsageError, match="eval_budget must be > 0"):
+        apply_overrides(TrainConfig(), {"eval_budget": budget})
