@@ -615,6 +615,8 @@ REWARDS: dict[str, Callable[..., RewardFn]] = {
     "wave_own": partial(WaveReward, own_speed_weight=0.5),
 }
 """Reward factories by name; keyword parameters are the dataclass fields."""
+TRAFFIC_REWARDS = frozenset({"wave", "wave_own"})
+"""The rewards that read every vehicle's speed: the trainer asks for ``report_traffic``."""
 
 DEFAULT_REWARD = "safe"
 

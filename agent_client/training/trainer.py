@@ -46,7 +46,7 @@ from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.policy import Policy
 from agent_client.rl.replay import ReplayBuffer
-from agent_client.rl.rewards import q_upper_bound
+from agent_client.rl.rewards import TRAFFIC_REWARDS, q_upper_bound
 from agent_client.rl.td3 import Agent
 from agent_client.training.collect import (
     EPISODE_FAILURES,
@@ -111,6 +111,8 @@ class Trainer:
         if overlap:
             raise UsageError(f"{sorted(overlap)[0]} is both a training and an evaluation server")
         options = {"decision_interval": config.decision_interval, **config.scenario_options}
+        if config.reward in TRAFFIC_REWARDS:  # it reads every vehicle's speed
+            options.setdefault("report_traffic", True)
         self.vec = RemoteVectorEnv(
             servers, config.scenario, reward=config.reward, timeout_s=timeout_s, **options
         )
@@ -552,7 +554,8 @@ class Trainer:
         budget = self.config.eval_budget
         if budget is not None and not passes:  # wait for training to outweigh what it cost
             progress.evaluation_resume_step = progress.global_step + math.ceil(steps / budget)
-        score = sum(met.values()) + result["speed_ratio_to_ceiling"]
+        ratio = result["speed_ratio_to_ceiling"]  # NaN where no ceiling is reported (the ring)
+        score = sum(met.values()) + (ratio if math.isfinite(ratio) else 0.0)
         if score >= progress.best_score:
             progress.best_score = score
             self._save_policy("policy.pt", job.context["policy_state"])

@@ -181,6 +181,30 @@ def test_lane_changing_training_runs_on_cflc(sumo_server: RunningServer, tmp_pat
     assert sum(int(r["lane_changes_started"]) + int(r["lane_changes_refused"]) for r in rows) > 0
 
 
+def test_the_wave_reward_trains_on_the_ring_and_its_evaluations_rank_policies(
+    sumo_server: RunningServer, tmp_path: Path
+) -> None:
+    """``report_traffic`` is asked for by the trainer itself (the reward reads every vehicle's
+    speed), and an evaluation without a ceiling (the ring reports none) still scores."""
+    config = fast_config(
+        scenario="ring", reward="wave", episodes=2, eval_every=1, eval_episodes=1, eval_gate=0,
+        eval_budget=None,
+        scenario_options={"warmup": 10.0, "max_episode_time": 20.0},
+        learner={"learning_starts": 10},
+    )  # fmt: skip
+    trainer = Trainer(config, sumo_server.address, tmp_path)
+    try:
+        assert trainer.env.options["report_traffic"] is True
+        trainer.run()
+    finally:
+        trainer.close()
+    rows = read_rows(tmp_path / "episodes.csv")
+    assert len(rows) == 2 and all(float(r["total_reward"]) != 0.0 for r in rows)
+    assert len(trainer.progress.evaluations) == 2
+    assert np.isfinite(trainer.progress.best_score)  # the ring's NaN ceiling ratio counts 0
+    assert (tmp_path / "policy.pt").exists()
+
+
 def run_rows(folder: Path) -> list[dict[str, str]]:
     """episodes.csv without the wall-clock column."""
     return [{k: v for k, v in row.items() if k != "wall_time"} for row in read_rows(folder)]
