@@ -541,6 +541,13 @@ class OldProtocol(ToyServer):
         return rewrite_wire(reply, "welcome", ("scenarios", 0, "options", "egos"), ...)
 
 
+class ManyEgosProtocol(ToyServer):
+    """A protocol 1.4 server: many egos, but no ``ego_share`` (it came with 1.5)."""
+
+    def answer(self, peer: bytes, frame: bytes) -> bytes | None:
+        return rewrite_wire(self.handle(peer, frame), "welcome", ("protocol",), [1, 4])
+
+
 class SilentOnMultiStep(ToyServer):
     """Never answers a multi_step."""
 

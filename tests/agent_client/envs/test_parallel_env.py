@@ -19,6 +19,7 @@ from agent_client.rl.rewards import make_reward
 from protocol.messages import Observation
 from tests.agent_client.conformance.toys import (
     ListsEgosTwice,
+    ManyEgosProtocol,
     NoEgos,
     OldProtocol,
     SilentOnMultiStep,
@@ -182,6 +183,14 @@ def test_a_server_without_many_egos_is_refused_before_any_reset(
         with pytest.raises(UsageError, match=words):
             RemoteParallelEnv(server.address, "cf", egos=2)
         assert server.session.owner is None  # the env said goodbye
+
+
+def test_a_share_of_the_traffic_needs_a_server_of_protocol_1_5() -> None:
+    with ManyEgosProtocol() as server:
+        with pytest.raises(UsageError, match=r"speaks protocol 1\.4: ego_share needs 1\.5"):
+            RemoteParallelEnv(server.address, "cf", ego_share=0.5)
+        assert server.session.owner is None  # the env said goodbye
+        RemoteParallelEnv(server.address, "cf", egos=2).close()  # a number it can serve
 
 
 def test_bad_arguments_are_usage_errors(toy: ToyServer) -> None:
