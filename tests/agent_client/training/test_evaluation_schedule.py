@@ -13,6 +13,7 @@ from agent_client.errors import UsageError
 from agent_client.training.config import TrainConfig, apply_overrides
 from agent_client.training.run_log import read_rows
 from agent_client.training.trainer import Trainer
+from tests.agent_client.training import short_runs
 from tests.conftest import RunningServer
 
 FAST = {
@@ -27,13 +28,7 @@ FAST = {
 
 
 def train(address: str, out: Path, **changes: object) -> Trainer:
-    config = apply_overrides(apply_overrides(TrainConfig(), FAST), dict(changes))
-    trainer = Trainer(config, address, out, timeout_s=5.0)
-    try:
-        trainer.run()
-    finally:
-        trainer.close()
-    return trainer
+    return short_runs.train(address, out, FAST, **changes)
 
 
 def test_the_budget_postpones_the_evaluation_after_a_failed_one(

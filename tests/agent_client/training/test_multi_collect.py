@@ -26,6 +26,7 @@ from agent_client.training.multi_collect import (
 )
 from agent_client.training.run_log import read_rows
 from agent_client.training.trainer import Trainer
+from tests.agent_client.training import short_runs
 from tests.conftest import RunningServer
 
 EGOS = 4
@@ -156,13 +157,7 @@ FAST = {
 
 
 def train(address: str, out: Path, **changes: object) -> Trainer:
-    config = apply_overrides(apply_overrides(TrainConfig(), FAST), dict(changes))
-    trainer = Trainer(config, address, out, timeout_s=5.0)
-    try:
-        trainer.run()
-    finally:
-        trainer.close()
-    return trainer
+    return short_runs.train(address, out, FAST, **changes)
 
 
 def test_the_trainer_learns_from_every_ego_with_one_shared_policy(
