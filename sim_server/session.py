@@ -179,7 +179,7 @@ class Session:
         seed = reset.seed if reset.seed is not None else secrets.randbelow(2**31)
         if not 0 <= seed < 2**31:
             raise ProtocolError(ErrorCode.INVALID_NUMBER, f"seed {seed} is outside 0..2^31-1")
-        egos = _egos(options, share="ego_share" in reset.options) if reset.many_egos else 0
+        egos = _egos(options, reset.options) if reset.many_egos else 0
         self._episode = None
         if egos:
             many = self.backend.reset_many(reset.scenario, seed, options, egos)
@@ -259,17 +259,17 @@ def _check_lane_change(value: int, name: str) -> None:
         raise ProtocolError(ErrorCode.INVALID_NUMBER, f"{name} {value} is not -1, 0 or 1")
 
 
-def _egos(options: dict[str, OptionValue], *, share: bool) -> int:
-    """The number of egos a multi-ego reset asks for (one that names `ego_share` leaves it to
-    the share: the default 1 is passed on)."""
-    egos = options["egos"]
+def _egos(options: dict[str, OptionValue], named: dict[str, OptionValue]) -> int:
+    """The number of egos a multi-ego reset asks for (`options` merged, `named` the reset's
+    own): one that names ``ego_share`` leaves it to the share, and 1 is passed on."""
+    egos = options.get("egos", 1)
     assert isinstance(egos, int)  # merge_options checked its type against the default
     if egos < 1:
         raise ProtocolError(ErrorCode.INVALID_OPTION, f"option egos must be >= 1, got {egos}")
-    if share:
+    if "ego_share" in named:
         value = options["ego_share"]
         assert isinstance(value, float)
-        if egos != 1:
+        if "egos" in named:
             raise ProtocolError(
                 ErrorCode.INVALID_OPTION,
                 "name egos (a number of egos) or ego_share (a share of the traffic), not both",

@@ -22,8 +22,8 @@ MULTI_STEPS = 3
 """multi_steps judged per episode."""
 _ACCELERATIONS = (0.5, 0.0, -0.5)
 _SEEDS = (70, 80, 90)
-"""First seed of the one-ego, the two-ego and the ``ego_share`` episodes (two more are tried
-if the first ends)."""
+"""Seeds of the one-ego, the two-ego and the ``ego_share`` episodes (the one-ego check tries
+the next two if its episode ends within `MULTI_STEPS`)."""
 _SHARE = 0.5
 
 

@@ -178,6 +178,9 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         self._observation_spaces: dict[str, spaces.Space[Any]] = {}
         self._action_spaces: dict[str, spaces.Space[Any]] = {}
         self._possible: list[str] | None = None
+        self._seen: set[str] = set()
+        """The ids in `_possible` (with ego_share it grows, and a later episode's egos often
+        have an earlier one's ids: SUMO numbers each flow's vehicles from 0 at every load)."""
         self._lane_count: int | None = None
         self.agents: list[str] = []
         self._last: dict[str, Observation] = {}
@@ -190,7 +193,8 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
 
     @property
     def possible_agents(self) -> list[str]:
-        """The ego ids of the first reset, in the server's stable order."""
+        """The ego ids of the first reset, in the server's stable order (with `ego_share`, every
+        ego seen so far, in the order first seen)."""
         if self._possible is None:
             self._probe()
         assert self._possible is not None
@@ -262,8 +266,7 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
             prev = self._last.get(ego.id)
             observations[ego.id] = self._vectors(obs)
             if prev is None:  # it joins (the reply checks let only an ego_share episode's in)
-                assert self._possible is not None
-                self._possible.append(ego.id)
+                self._see([ego.id])
                 rewards[ego.id], infos[ego.id] = 0.0, {"observation": obs, "joined": True}
             else:
                 rewards[ego.id] = float(self.reward_fn(prev, obs, obs.time - prev.time))
@@ -342,11 +345,9 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
     def _start(self, frame: MultiObservation) -> None:
         """Take a reset's frame as the episode's start."""
         ids = [ego.id for ego in frame.egos]
-        if self._possible is None:
-            self._possible = list(ids)
-        elif self.ego_share is not None:
-            self._possible += [agent for agent in ids if agent not in self._possible]
-        elif not set(ids) <= set(self._possible):
+        if self._possible is None or self.ego_share is not None:
+            self._see(ids)
+        elif not set(ids) <= self._seen:
             raise MalformedReply(
                 f"{self.address}: the egos of this reset, {ids}, are not those of the first, "
                 f"{self._possible}: possible_agents cannot change"
@@ -366,8 +367,19 @@ class RemoteParallelEnv(ParallelEnv[str, np.ndarray, Any]):
         self._start(frame)
         self._frame, self._seq, self.agents, self._last = None, 0, [], {}
 
+    def _see(self, ids: list[str]) -> None:
+        """Add the ids not seen yet to `possible_agents`, in their order."""
+        if self._possible is None:
+            self._possible = []
+        for agent in ids:
+            if agent not in self._seen:
+                self._seen.add(agent)
+                self._possible.append(agent)
+
     def _known(self, agent: str) -> None:
-        if agent not in self.possible_agents:
+        if self._possible is None:
+            self._probe()
+        if agent not in self._seen:
             raise ValueError(
                 f"no agent {agent!r}; possible agents: {', '.join(self._possible or [])}"
             )

@@ -165,7 +165,10 @@ class Trainer:
         self.idm_speeds: list[float] = []
         """IDM's average speed per evaluation seed: the same seeds' figure for a stopped one."""
         self.idm_ceilings: list[float] | None = None
-        """IDM's leader-at-entry ceiling per evaluation seed (None where one is missing)."""
+        """IDM's leader-at-entry ceiling per evaluation seed: a bound on any driver's average
+        speed there (None where one is missing, or where IDM did not reach the end of the road
+        within the time limit: a drive cut short may average more than its leader's whole
+        trip)."""
         # The leader-at-entry ceiling costs the server a run-on of up to ~100 ms at every
         # episode end: only the evaluations, whose targets use it, ask for it.
         reset_options = {"report_ceiling": False} if _offers(self.env, "report_ceiling") else {}
@@ -502,12 +505,10 @@ class Trainer:
         """What lets an evaluation stop once it has certainly failed: the scenario's time limit
         bounds an episode's steps, and on one lane IDM's ceilings bound every seed's speed."""
         assert self.idm_eval is not None
-        limit = self.env.scenario_options.get("max_episode_time")
-        max_steps = (
-            math.ceil(float(limit) / self.config.decision_interval) + 10
-            if isinstance(limit, int | float) and not isinstance(limit, bool)
-            else None
-        )
+        options = self.env.scenario_options
+        limit = _number(options.get("max_episode_time"))
+        interval = _number(options.get("decision_interval"))  # the env's, as the server has it
+        max_steps = math.ceil(limit / interval) + 10 if limit and interval else None
         ceilings = self.idm_ceilings
         bounds = ceilings if self._one_lane and ceilings and len(ceilings) == seeds else None
         return FailureScreen(seeds, self.idm_eval["average_speed"], max_steps, bounds)
@@ -526,7 +527,8 @@ class Trainer:
         ceilings = [s.ceiling_speed for s in summaries]
         self.idm_speeds = [s.average_speed for s in summaries]
         self.idm_ceilings = [c for c in ceilings if c is not None]
-        if len(self.idm_ceilings) != len(ceilings):
+        arrived = all(s.reason == "end_of_road" for s in summaries)
+        if len(self.idm_ceilings) != len(ceilings) or not arrived:
             self.idm_ceilings = None
         (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
 
@@ -556,7 +558,7 @@ class Trainer:
             progress.evaluation_resume_step = progress.global_step + math.ceil(steps / budget)
         ratio = result["speed_ratio_to_ceiling"]  # NaN where no ceiling is reported (the ring)
         score = sum(met.values()) + (ratio if math.isfinite(ratio) else 0.0)
-        if score >= progress.best_score:
+        if complete and score >= progress.best_score:  # a stopped one's figures are partial
             progress.best_score = score
             self._save_policy("policy.pt", job.context["policy_state"])
         evaluation = {
@@ -665,6 +667,13 @@ class Trainer:
         finally:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
+
+
+def _number(value: object) -> float | None:
+    """An option's number (None for a missing or non-numeric one)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    return None
 
 
 def _offers(env: RemoteEnv, option: str) -> bool:

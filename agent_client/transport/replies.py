@@ -585,15 +585,16 @@ class _ObservationRules:
                 f"0 (in_progress): a lane change was under way (changing_lane {under_way}) (§4.2)",
             )
 
-    def first(self) -> None:
-        """Seq 0 (since 1.2): nothing has happened and nothing was decided yet."""
+    def first(self, when: str = "at seq 0 (§4.4)") -> None:
+        """Seq 0 (since 1.2), or an ego that joins (1.5): nothing has happened and nothing was
+        decided yet."""
         obs = self.obs
         if obs.events != Events():
-            self.rule(f"{self.where}.events", None, "all false at seq 0 (§4.4)")
+            self.rule(f"{self.where}.events", None, f"all false {when}")
         if obs.action != AppliedAction(0.0, 0, 0.0, 0):
-            self.rule(f"{self.where}.action", None, 'zeros and "" at seq 0 (§4.4)')
+            self.rule(f"{self.where}.action", None, f'zeros and "" {when}')
         if obs.ego.changing_lane:
-            self.rule(f"{self.where}.ego.changing_lane", obs.ego.changing_lane, "0 at seq 0 (§4.2)")
+            self.rule(f"{self.where}.ego.changing_lane", obs.ego.changing_lane, f"0 {when}")
 
     def ceiling(self) -> None:
         obs, trip = self.obs, self.obs.ceiling
@@ -810,10 +811,13 @@ class _FrameRules:
             if command is not None:
                 asked = Step(frame.seq, command.acceleration, command.lane_change)
             last = checker.last_egos.get(ego.id) if self.last is not None else None
-            _ObservationRules(
+            rules = _ObservationRules(
                 checker, self.rule, ego_observation(frame, ego), asked, last,
                 f"{self.WHERE}.egos[{i}]", "ends its ego's drive (§3.1)",
-            ).body()  # fmt: skip
+            )  # fmt: skip
+            rules.body()
+            if isinstance(request, MultiStep) and command is None:  # one that joins (1.5)
+                rules.first("when it joins (§3.1)")
 
 
 def _over(ego: EgoObservation) -> bool:

@@ -354,6 +354,7 @@ def test_a_reset_naming_ego_share_is_a_multi_ego_episode() -> None:
     ("options", "words"),
     [
         ({"ego_share": 0.5, "egos": 2}, "name egos (a number of egos) or ego_share"),
+        ({"ego_share": 0.5, "egos": 1}, "name egos (a number of egos) or ego_share"),
         ({"ego_share": 0.0}, "option ego_share must be within (0, 1], got 0"),
         ({"ego_share": -0.5}, "option ego_share must be within (0, 1], got -0.5"),
         ({"ego_share": 1.5}, "option ego_share must be within (0, 1], got 1.5"),

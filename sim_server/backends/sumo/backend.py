@@ -840,8 +840,8 @@ class SumoBackend(Backend):
     ) -> dict[str, Observation]:
         """Run the decision's simulation steps for every ego at once. An ego that collides or
         arrives is judged at that simulation step and taken out; the others drive on (all
-        gone: the decision stops). Returns those egos' last observations, in the order their
-        drives ended."""
+        gone: the decision stops, unless egos may join it, ``ego_share``). Returns those egos'
+        last observations, in the order their drives ended."""
         api = self._api
         simulation, vehicle = api.simulation, api.vehicle
         finals: dict[str, Observation] = {}
@@ -870,7 +870,7 @@ class SumoBackend(Backend):
                     )
                 self._take_out([d.ego.id for d in ending if not d.end_of_road])
                 active = [d for d in active if d.ego.id not in finals]
-                if not active:
+                if not active and episode.share is None:  # a share's may still join
                     break
         return finals
 

@@ -19,6 +19,7 @@ from agent_client.transport.replies import ReplyChecker, check_welcome, scenario
 from protocol.codec import decode_reply, encode
 from protocol.messages import (
     ActionSchema,
+    AppliedAction,
     Bye,
     Close,
     Command,
@@ -529,7 +530,8 @@ def test_random_multi_ego_episodes_of_the_fake_keep_every_rule() -> None:
 
 def joined(frame: MultiObservation, ego_id: str = "human0.7", **changes: Any) -> MultiObservation:
     """`frame` with one more ego appended, as one that joins in it."""
-    newcomer = replace(frame.egos[0], id=ego_id, **changes)
+    nothing = {"action": AppliedAction(0.0, 0, 0.0, 0), "events": Events()}
+    newcomer = replace(frame.egos[0], id=ego_id, **{**nothing, **changes})
     return replace(frame, egos=(*frame.egos, newcomer))
 
 
@@ -561,3 +563,10 @@ def test_an_ego_that_joins_drives() -> None:
     ended = joined(after, terminated=True, reason="stopped")
     error = refused(share_checker(first), multi_step(), ended)
     assert error.field == "multi_observation.egos[3].terminated"
+
+
+def test_an_ego_that_joins_has_done_nothing_yet() -> None:
+    first, after = multi_episode()
+    acted = joined(after, action=AppliedAction(0.5, 0, 0.5, 0))
+    error = refused(share_checker(first), multi_step(), acted)
+    assert error.field == "multi_observation.egos[3].action"
