@@ -86,6 +86,10 @@ def test_a_share_of_cflc_traffic_with_egos_joining(sumo_server: RunningServer) -
             joiners += new
         assert joiners  # ~0.6 veh/s enter, a quarter of them join (the backend tests count)
         assert env.possible_agents == [*first, *joiners]  # every ego seen, in order
+        env.reset(seed=2)  # the same episode again: the same SUMO ids, none of them new
+        while env.agents:
+            env.step({agent: {"acceleration": [0.3]} for agent in env.agents})
+        assert env.possible_agents == [*first, *joiners]
         api_test(env, num_cycles=50)
     finally:
         env.close()
