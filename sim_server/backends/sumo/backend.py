@@ -826,10 +826,13 @@ class SumoBackend(Backend):
     def _join(self, episode: _Episode, draw: ShareDraw, seq: int) -> list[tuple[str, Observation]]:
         """The vehicles that entered during the decision and join as egos now, at its end
         (SUMO drove them until then), each with its first observation."""
+        joining = draw.joining()
+        if not joining:  # most decisions
+            return []
         present = set(self._api.vehicle.getIDList())
         action = AppliedAction(0.0, 0, 0.0, 0)
         joined = []
-        for vehicle in draw.joining():
+        for vehicle in joining:
             if vehicle in present:  # not already gone again (a very long decision)
                 ego = self._take_over(episode, vehicle)
                 joined.append((vehicle, self._observe(episode, ego, seq, QUIET, action, False)))
