@@ -16,20 +16,26 @@ Example file::
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from agent_client.defaults import DEFAULT_SCENARIO, TRAINING_EVALUATION_SEED, TRAINING_SEED
 from agent_client.errors import UsageError
 from agent_client.rl.td3 import TD3Config
 
+if TYPE_CHECKING:
+    from agent_client.rl.rewards import RewardFn
+
 LEARNER = "learner"
 """The table of the learner's own hyper-parameters."""
 LEGACY_LEARNER = "ddpg"
 """Its name before 0.2, still read from older runs' config.json and ``--set ddpg.KEY``."""
+REWARD_PARAMS = "reward_params"
+"""The table of the reward's parameters (``--set reward_params.KEY=VALUE``)."""
 
 RECOMMENDED_LEARNER = TD3Config.td3(
     gamma=0.98, noise="ou", max_grad_norm=1.0, batch_size=128, action_l2=0.1, smoothness=5.0
@@ -49,6 +55,9 @@ class TrainConfig:
     """Scenario name offered by the server (cf, cflc, or a user's own)."""
     reward: str = "safe"
     """Reward function: safe (ours, recommended), ra1, ra2, ra3, ra4 or rlc."""
+    reward_params: dict[str, float] = field(default_factory=dict)
+    """Keyword parameters of the reward, e.g. ``{desired_headway = 1.1}`` for safe (the fields
+    of its class in `agent_client.rl.rewards`); {}: the reward's defaults."""
     features: str = "auto"
     """Network inputs: cf, lc, or auto (lc on multi-lane roads, else cf)."""
     lane_change: str = "auto"
@@ -149,6 +158,7 @@ class TrainConfig:
                 raise UsageError(
                     f"{name} {getattr(self, name)!r} is not one of: {', '.join(valid)}"
                 )
+        self.reward_fn()  # a parameter the reward lacks, or a bad value, is a UsageError
         for name in (
             "episodes",
             "egos",
@@ -176,6 +186,26 @@ class TrainConfig:
                 f"lane_decision_interval must be > 0, got {self.lane_decision_interval}"
             )
 
+    def reward_fn(self) -> RewardFn:
+        """The reward `reward` with `reward_params`; `UsageError` naming a bad parameter."""
+        from agent_client.rl.rewards import REWARDS, make_reward
+
+        if not isinstance(self.reward_params, dict):
+            raise UsageError(f"reward_params must be a table, got {self.reward_params!r}")
+        known = inspect.signature(REWARDS[self.reward]).parameters
+        for key, value in self.reward_params.items():
+            if key not in known:
+                raise UsageError(
+                    f"reward_params.{key}: reward {self.reward} has no such parameter; "
+                    f"its parameters: {', '.join(known)}"
+                )
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise UsageError(f"reward_params.{key} must be a number, got {value!r}")
+        try:
+            return make_reward(self.reward, **self.reward_params)
+        except ValueError as exc:
+            raise UsageError(f"reward_params for {self.reward}: {exc}") from exc
+
     @property
     def lane_decision_every(self) -> int:
         """Decisions per lane decision: `lane_decision_interval` in whole decisions, at least one
@@ -202,6 +232,8 @@ def apply_overrides(config: TrainConfig, values: dict[str, Any]) -> TrainConfig:
     unknown = sorted(set(values) - set(known))
     if unknown:
         raise UsageError(f"unknown training setting {unknown[0]!r}; known: {', '.join(known)}")
+    if isinstance(values.get(REWARD_PARAMS), dict):  # merged, as the learner's table is
+        values[REWARD_PARAMS] = {**config.reward_params, **values[REWARD_PARAMS]}
     top = {k: v for k, v in values.items() if k != LEARNER}
     learner = config.learner
     if LEARNER in values:
@@ -235,7 +267,8 @@ def load_config_file(path: Path) -> dict[str, Any]:
 
 
 def parse_assignment(text: str) -> dict[str, Any]:
-    """``KEY=VALUE`` or ``learner.KEY=VALUE`` (VALUE as JSON when it parses) to a nested dict."""
+    """``KEY=VALUE``, ``learner.KEY=VALUE`` or ``reward_params.KEY=VALUE`` (VALUE as JSON when
+    it parses) to a nested dict."""
     key, sep, raw = text.partition("=")
     if not sep or not key:
         raise UsageError(f"--set {text!r}: expected KEY=VALUE")
@@ -246,4 +279,6 @@ def parse_assignment(text: str) -> dict[str, Any]:
     table, dot, name = key.partition(".")
     if dot and table in (LEARNER, LEGACY_LEARNER):
         return {LEARNER: {name: value}}
+    if dot and table == REWARD_PARAMS:
+        return {REWARD_PARAMS: {name: value}}
     return {key: value}

@@ -224,7 +224,7 @@ def ray_collector(
     spec = WorkerSpec(
         address=env.address,
         scenario=config.scenario,
-        reward=config.reward,
+        reward=env.reward_fn,
         options=dict(env.options),
         reset_options=dict(reset_options),
         features=features.name,

@@ -24,6 +24,7 @@ from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LaneChoice, choose_lanes
 from agent_client.rl.networks import NumpyActor, NumpyCritic
 from agent_client.rl.noise import ActionNoise, make_noise
+from agent_client.rl.rewards import RewardFn
 from agent_client.training.collect import (
     EPISODE_FAILURES,
     MAX_FAILURES_IN_A_ROW,
@@ -41,7 +42,8 @@ class WorkerSpec:
 
     address: str
     scenario: str
-    reward: str
+    reward: RewardFn
+    """The reward (a dataclass of `agent_client.rl.rewards`, picklable for Ray)."""
     options: dict[str, Any]
     """`RemoteEnv` scenario options (decision_interval included)."""
     reset_options: dict[str, OptionValue]

@@ -113,8 +113,9 @@ class Trainer:
         options = {"decision_interval": config.decision_interval, **config.scenario_options}
         if config.reward in TRAFFIC_REWARDS:  # it reads every vehicle's speed
             options.setdefault("report_traffic", True)
+        reward = config.reward_fn()
         self.vec = RemoteVectorEnv(
-            servers, config.scenario, reward=config.reward, timeout_s=timeout_s, **options
+            servers, config.scenario, reward=reward, timeout_s=timeout_s, **options
         )
         self.eval_envs: list[RemoteEnv] = []
         try:
@@ -123,7 +124,7 @@ class Trainer:
                     RemoteEnv(
                         address,
                         config.scenario,
-                        reward=config.reward,
+                        reward=reward,
                         timeout_s=timeout_s,
                         **options,
                     )
@@ -160,7 +161,7 @@ class Trainer:
         )
         self.progress = Progress()
         self.profile = Profile()
-        self.q_bound = q_upper_bound(config.reward, config.learner.gamma)
+        self.q_bound = q_upper_bound(config.reward, config.learner.gamma, **config.reward_params)
         self.idm_eval: dict[str, float] | None = None
         self.idm_speeds: list[float] = []
         """IDM's average speed per evaluation seed: the same seeds' figure for a stopped one."""

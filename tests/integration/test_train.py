@@ -166,6 +166,24 @@ def test_the_saved_policy_reloads_and_drives(sumo_server: RunningServer, tmp_pat
     assert episode["duration"] / episode["steps"] == pytest.approx(1.0, rel=0.05)
 
 
+def test_reward_params_shape_the_reward_of_the_same_drive(
+    sumo_server: RunningServer, tmp_path: Path
+) -> None:
+    totals = []
+    for knee in (1.2, 3.0):  # IDM follows at ~1.5 s: below a 3 s knee its steps earn less
+        config = fast_config(episodes=1, reward_params={"desired_headway": knee})
+        trainer = Trainer(config, sumo_server.address, tmp_path / str(knee))
+        try:
+            assert trainer.env.reward_fn.desired_headway == knee  # type: ignore[attr-defined]
+            trainer.run()  # one warm-up episode: IDM with the seed's noise, the same drive
+        finally:
+            trainer.close()
+        totals.append(float(read_rows(tmp_path / str(knee) / "episodes.csv")[0]["total_reward"]))
+        saved = json.loads((tmp_path / str(knee) / "config.json").read_text())
+        assert saved["reward_params"] == {"desired_headway": knee}
+    assert totals[1] < 0.95 * totals[0]
+
+
 def test_lane_changing_training_runs_on_cflc(sumo_server: RunningServer, tmp_path: Path) -> None:
     trainer = Trainer(
         fast_config(scenario="cflc", episodes=2, reward="rlc"), sumo_server.address, tmp_path

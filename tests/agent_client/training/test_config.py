@@ -66,3 +66,38 @@ def test_lane_decisions_come_every_whole_number_of_decisions(
 def test_a_lane_decision_interval_must_be_positive() -> None:
     with pytest.raises(UsageError, match="lane_decision_interval"):
         TrainConfig(lane_decision_interval=0.0)
+
+
+def test_reward_params_reach_the_reward_and_merge_like_the_learner_table(tmp_path: Path) -> None:
+    file = tmp_path / "run.toml"
+    file.write_text("[reward_params]\ndesired_headway = 1.1\n")
+    args = build_parser().parse_args(
+        ["train", "--config", str(file), "--set", "reward_params.jerk_weight=0.25"]
+    )
+    config = build_config(args)
+    assert config.reward_params == {"desired_headway": 1.1, "jerk_weight": 0.25}
+    reward = config.reward_fn()
+    assert (reward.desired_headway, reward.jerk_weight) == (1.1, 0.25)  # type: ignore[attr-defined]
+    assert TrainConfig.from_dict(config.to_dict()) == config  # config.json keeps them
+    assert TrainConfig().reward_fn() == TrainConfig(reward_params={}).reward_fn()
+
+
+@pytest.mark.parametrize(
+    ("params", "named"),
+    [
+        ({"desired_headwy": 1.1}, "desired_headwy"),  # a typo names itself and the known ones
+        ({"desired_headway": "far"}, "desired_headway"),
+        ({"desired_headway": True}, "desired_headway"),
+        ({"desired_headway": -1.0}, "positive"),  # the reward's own check
+    ],
+)
+def test_a_bad_reward_parameter_is_a_usage_error_naming_it(
+    params: dict[str, object], named: str
+) -> None:
+    with pytest.raises(UsageError, match=named):
+        TrainConfig(reward_params=params)  # type: ignore[arg-type]
+
+
+def test_reward_params_belong_to_the_chosen_reward() -> None:
+    with pytest.raises(UsageError, match="reward ra3 has no such parameter"):
+        TrainConfig(reward="ra3", reward_params={"ttc_weight": 0.5})
