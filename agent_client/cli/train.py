@@ -69,7 +69,8 @@ def add_parser(commands: Commands) -> None:
         default=[],
         metavar="ADDRESS",
         help="a server for the greedy evaluations, which then run while training goes on "
-        "(repeatable; default: evaluate on the --server(s), training waiting)",
+        "(--set eval_while_training=false: training waits for them; repeatable; default: "
+        "evaluate on the --server(s), training waiting)",
     )
     train.add_argument("--resume", type=Path, metavar="RUN", help="continue runs/NAME")
     train.add_argument(

@@ -115,6 +115,12 @@ class TrainConfig:
     pass the next runs when due, so passes in a row stay `eval_every` apart. The same
     evaluations of `eval_episodes` episodes, fewer while the policy fails; counted in steps, not
     seconds, so a run stays repeatable. None: evaluate whenever due."""
+    eval_while_training: bool = True
+    """With evaluation servers (`agent-client train --eval-server`): evaluate on them while
+    training goes on, one step per training iteration. False: training waits while an
+    evaluation runs there at full speed, screened like an inline one; where the machine has no
+    cores to spare, `direct://` evaluation servers then run it about twice as fast as the
+    `tcp://` training servers would (docs/learner.md, "Evaluations during training")."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
     stop_when_converged: bool = False

@@ -11,8 +11,9 @@ evaluations stay one-ego episodes.
 
 Greedy evaluations on held-out seeds judge the policy against the IDM baseline and the
 leader-at-entry ceiling: on servers of their own while training goes on (`eval_servers`), or
-inline, spread over the training servers. Checkpoints make a run resumable; with one server and no
-evaluation server the same seed and configuration give the same run.
+inline, training waiting, on those servers or spread over the training servers. Checkpoints
+make a run resumable; with one server and no evaluation server the same seed and
+configuration give the same run.
 """
 
 from __future__ import annotations
@@ -96,7 +97,8 @@ class Trainer:
         eval_servers: Sequence[str] = (),
     ) -> None:
         """Train on one `server` address or several (one simulation each, stepped at once);
-        evaluate on `eval_servers` while training (default: inline, on the training servers).
+        evaluate on `eval_servers` while training, or inline there with
+        `config.eval_while_training` off (default: inline, on the training servers).
 
         `retry_for_s` > 0: when a server is lost, wait that long for it to come back.
         """
@@ -195,7 +197,9 @@ class Trainer:
                 self.vec.envs, self.features, self.lanes, self.scale, self._choose,
                 self._next_seed, self.agent.reset_noise, reset_options,
             )  # fmt: skip
-        self.evaluator = Evaluator(self.eval_envs) if self.eval_envs else None
+        concurrent = self.eval_envs and config.eval_while_training
+        self.evaluator = Evaluator(self.eval_envs) if concurrent else None
+        """Runs evaluations while training goes on; None: they run inline and training waits."""
         self._pairs = n_envs > 1 and config.learner.policy_delay == 2
         """With several servers the updates due each iteration run as TD3 pairs."""
         self._stop_requested = False
@@ -489,8 +493,9 @@ class Trainer:
             "policy_state": state,
         }
         seeds = self._eval_seeds()
-        # Inline, an evaluation blocks training: it ends once certainly failed. On servers of
-        # its own it costs the learner little, and keeps all its episodes, as before.
+        # Inline (on the training servers, or on evaluation servers with eval_while_training
+        # off), an evaluation blocks training: it ends once certainly failed. Concurrent, on
+        # servers of its own, it costs the learner little, and keeps all its episodes.
         inline = self.evaluator is None
         screen = self._screen(len(seeds)) if self.config.eval_screen and inline else None
         job = EvaluationJob("policy", driver, seeds, context, stop_on_collision=True, screen=screen)
@@ -498,8 +503,10 @@ class Trainer:
         if self.evaluator is not None:
             self.evaluator.start(job)
             return
-        summaries = self._resilient(lambda: self._run_inline(job, self.vec.envs))
-        self.collector.drop_episodes()  # the evaluation used the training servers
+        envs = self.eval_envs or self.vec.envs
+        summaries = self._resilient(lambda: self._run_inline(job, envs))
+        if not self.eval_envs:
+            self.collector.drop_episodes()  # the evaluation used the training servers
         self._evaluation_done(job, summaries, log)
 
     def _screen(self, seeds: int) -> FailureScreen | None:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -279,6 +280,41 @@ def test_evaluations_run_on_their_own_server_while_training_goes_on(
     rows = read_rows(tmp_path / "evaluations.csv")
     assert len(rows) == len(progress.evaluations)
     assert all(int(r["episodes"]) == 2 for r in rows)
+
+
+def test_with_eval_while_training_off_evaluations_block_on_their_own_server(
+    scenario_cache: Path, tmp_path: Path
+) -> None:
+    with (
+        sim_server("--backend", "sumo", cache_dir=scenario_cache) as train,
+        sim_server("--backend", "sumo", cache_dir=scenario_cache) as evaluate,
+    ):
+        config = fast_config(episodes=8, eval_every=2, eval_episodes=2, eval_gate=0,
+                             eval_budget=None, eval_while_training=False)  # fmt: skip
+        trainer = Trainer(config, train.address, tmp_path, eval_servers=[evaluate.address])
+        seeds: dict[str, list[int]] = {"train": [], "evaluate": []}
+        for name, env in (("train", trainer.env), ("evaluate", trainer.eval_envs[0])):
+            send_reset = env.send_reset
+
+            def recording(*args: Any, _into: list[int] = seeds[name], _send: Any = send_reset,
+                          **kwargs: Any) -> None:  # fmt: skip
+                _into.append(kwargs["seed"])
+                _send(*args, **kwargs)
+
+            env.send_reset = recording  # type: ignore[method-assign]
+        try:
+            progress = trainer.run()
+        finally:
+            trainer.close()
+    assert trainer.evaluator is None  # nothing runs beside training
+    assert len(progress.evaluations) >= 3
+    assert trainer.profile.seconds["evaluation"] < 0.05 < trainer.profile.blocking_evaluation
+    held_out = set(range(config.eval_seed, config.eval_seed + config.eval_episodes))
+    # The IDM baseline spreads over both servers; every policy evaluation ran on its own.
+    assert sum(s in held_out for s in seeds["train"]) <= 1
+    evaluated = sum(int(e["episodes"]) for e in progress.evaluations)
+    assert sum(s in held_out for s in seeds["evaluate"]) >= 1 + evaluated
+    assert len(read_rows(tmp_path / "episodes.csv")) == 8  # no training episode was given up
 
 
 def test_a_lane_change_is_asked_for_only_when_it_can_happen(
