@@ -165,6 +165,10 @@ class TrainConfig:
                     f"{name} {getattr(self, name)!r} is not one of: {', '.join(valid)}"
                 )
         self.reward_fn()  # a parameter the reward lacks, or a bad value, is a UsageError
+        for setting in dataclasses.fields(self):  # --set eval_screen=False is not false
+            value = getattr(self, setting.name)
+            if isinstance(setting.default, bool) and not isinstance(value, bool):
+                raise UsageError(f"{setting.name} must be true or false, got {value!r}")
         for name in (
             "episodes",
             "egos",

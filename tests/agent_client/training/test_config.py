@@ -101,3 +101,11 @@ def test_a_bad_reward_parameter_is_a_usage_error_naming_it(
 def test_reward_params_belong_to_the_chosen_reward() -> None:
     with pytest.raises(UsageError, match="reward ra3 has no such parameter"):
         TrainConfig(reward="ra3", reward_params={"ttc_weight": 0.5})
+
+
+@pytest.mark.parametrize("text", ["eval_while_training=False", "eval_screen=1", "pretrain_idm=no"])
+def test_a_switch_takes_true_or_false_only(text: str) -> None:
+    key = text.partition("=")[0]
+    with pytest.raises(UsageError, match=f"{key} must be true or false"):
+        apply_overrides(TrainConfig(), parse_assignment(text))
+    assert apply_overrides(TrainConfig(), parse_assignment(f"{key}=false")).to_dict()[key] is False
