@@ -4,7 +4,8 @@ while training goes on, or inline on a training server.
 With servers of its own (`agent-client train --eval-server`), an evaluation advances one step
 per training iteration on each of them: its requests are sent with the training step's and
 answered while the learner updates, so it costs the learner only choosing the action and reading
-the reply. Without, `run` drives every episode at once and training waits.
+the reply. Inline (on the training servers, or on servers of its own with
+`TrainConfig.eval_while_training` off), `run` drives every episode at once and training waits.
 
 A job with a `screen` ends as soon as it has certainly failed (`EvaluationJob.screen`): the
 episodes left could not change the verdict, and run inline they are time the learner does not
