@@ -309,6 +309,19 @@ def test_safe_no_leader_scores_like_good_free_driving() -> None:
     assert safe_at(LIMIT + 2.0, None) == pytest.approx(1.0)  # speeding never pays
 
 
+def test_safe_far_sigma_pays_for_closing_up_to_the_knee() -> None:
+    far = SafeReward(headway_far_sigma=1.0)
+
+    def at(headway: float) -> float:
+        return far(None, make_obs(speed=15.0, leader=lead(headway * 15.0, 15.0)), DT)
+
+    assert at(1.2) == pytest.approx(15.0 / LIMIT)  # the peak stays at the knee
+    # exp(-ln(h / 1.2)^2 / 2), by hand: h = 1.5 -> 0.9754, 3.0 -> 0.6572
+    assert at(1.5) == pytest.approx(15.0 / LIMIT * 0.9754, abs=1e-4)
+    assert at(3.0) == pytest.approx(15.0 / LIMIT * 0.6572, abs=1e-4)
+    assert at(1.0) == pytest.approx(safe_at(15.0, 1.0))  # below the knee: unchanged
+
+
 def test_safe_ttc_penalty() -> None:
     safe = SafeReward()
     closing = make_obs(speed=20.0, leader=lead(40.0, 10.0))  # h = 2 s, TTC = 4 s
