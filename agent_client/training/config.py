@@ -102,8 +102,7 @@ class TrainConfig:
     """Episodes per greedy evaluation."""
     eval_gate: int = 3
     """Evaluate only when the last `eval_gate` training episodes ended without a collision (a
-    policy that still crashes with exploration noise is not worth `eval_episodes` greedy ones),
-    or the last evaluation passed (a run of passes is not held up by the noise's crashes); 0
+    policy that still crashes with exploration noise is not worth `eval_episodes` greedy ones); 0
     evaluates every `eval_every` episodes regardless."""
     eval_screen: bool = True
     """End an evaluation as soon as it has failed a target for certain, whatever its remaining

@@ -424,10 +424,7 @@ class Trainer:
         return self.progress.global_step >= self.progress.evaluation_resume_step
 
     def _gate_open(self) -> bool:
-        """No collision in the last `eval_gate` training episodes, or the last evaluation passed
-        (the greedy policy has shown what the noisy one's crashes would have had to show)."""
-        if self.progress.passed_in_a_row > 0:
-            return True
+        """No collision in the last `eval_gate` training episodes."""
         gate = self.config.eval_gate
         recent = list(self._recent_collisions)[-gate:] if gate else []
         return len(recent) >= gate and not any(recent)

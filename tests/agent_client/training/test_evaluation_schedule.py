@@ -67,23 +67,6 @@ def test_a_stopped_evaluation_is_recorded_as_a_failure_of_its_target(
     assert trainer.progress.evaluation_steps > 0
 
 
-def test_the_gate_holds_back_a_crashing_policy_but_not_a_run_of_passes(
-    fake_server: RunningServer, tmp_path: Path
-) -> None:
-    config = apply_overrides(apply_overrides(TrainConfig(), FAST), {"eval_gate": 3})
-    trainer = Trainer(config, fake_server.address, tmp_path / "run", timeout_s=5.0)
-    try:
-        assert not trainer._gate_open()  # too few episodes yet
-        trainer._recent_collisions.extend([False, False, False])
-        assert trainer._gate_open()
-        trainer._recent_collisions.append(True)  # a training episode crashed
-        assert not trainer._gate_open()
-        trainer.progress.passed_in_a_row = 1  # ... but the greedy policy passed last time
-        assert trainer._gate_open()
-    finally:
-        trainer.close()
-
-
 @pytest.mark.parametrize("budget", [0.0, -0.5])
 def test_a_budget_must_be_positive(budget: float) -> None:
     with pytest.raises(UsageError, match="eval_budget must be > 0"):
