@@ -2,7 +2,8 @@
 
 For each reward and training seed: start a real SUMO server on a free loopback port, train from
 scratch with the recommended configuration (plus any --set), evaluate greedily every
-`eval_every` episodes on `eval_episodes` held-out seeds, and stop at three passing evaluations
+`eval_every` episodes on `eval_episodes` held-out seeds (on two `direct://` servers of their
+own while training waits, unless --eval-servers 0), and stop at three passing evaluations
 in a row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of leader steps under
 1 s headway, speed >= IDM and >= 98 % of the leader-at-entry ceiling) or at the time budget.
 
@@ -100,6 +101,7 @@ def run_one(
         "updates_run": progress.updates,
         "servers": servers,
         "eval_servers": eval_servers,
+        "eval_while_training": config.eval_while_training,
         "evaluation_share": trainer.profile.evaluation_share(),
         "evaluation_episodes_run": sum(int(e["episodes"]) for e in evaluations),
         "evaluation_episodes_saved": sum(int(e.get("episodes_saved", 0)) for e in evaluations),
@@ -123,9 +125,11 @@ def main() -> int:
     parser.add_argument(
         "--eval-servers",
         type=int,
-        default=0,
-        help="evaluation servers of their own (default 0: inline on the training servers, as "
-        "`agent-client train` does without --eval-server)",
+        default=2,
+        help="direct:// evaluation servers of their own; training waits while they evaluate "
+        "(default 2, as scripts/main.sh; --set eval_while_training=true evaluates beside "
+        "training instead; 0: inline on the training servers, as `agent-client train` does "
+        "without --eval-server)",
     )
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmark")
     parser.add_argument("--verbose", action="store_true")
@@ -144,6 +148,7 @@ def main() -> int:
                     "eval_every": args.eval_every,
                     "eval_episodes": args.eval_episodes,
                     "stop_when_converged": True,
+                    "eval_while_training": not args.eval_servers,  # blocking on their own
                 },
             )
             for assignment in args.set:

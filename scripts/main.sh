@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The main job on the embedded default (libsumo), both of the paper's cases, end to end through
 # the bridge, in one report:
-#   1. start two SUMO servers on free loopback ports (waits for their readiness lines),
+#   1. start four SUMO servers on free loopback ports, two to train on and two to evaluate on
+#      (waits for their readiness lines),
 #   2. calibrate IDM on the human drivers of cf,
 #   3. train the recommended learner (TD3) on cf until three greedy evaluations in a row meet
 #      every target (or the time cap), and evaluate it against the calibrated IDM,
@@ -19,37 +20,50 @@ export PATH="$PWD/.venv/bin:$PATH"
 out=${OUT:-runs/main-$(date +%Y%m%d-%H%M%S)}
 episodes=${EVAL_EPISODES:-20}
 mkdir -p "$out"
-sim-server --bind tcp://127.0.0.1:0 --workers 2 --backend sumo \
-    >"$out/server.out" 2>"$out/server.log" &
-server=$!
-trap 'kill "$server" 2>/dev/null; wait "$server" 2>/dev/null' EXIT
-
-for _ in $(seq 1200); do  # two readiness lines, at most 120 s
-    [ "$(grep -c '^listening on ' "$out/server.out")" -ge 2 ] && break
-    kill -0 "$server" 2>/dev/null || { cat "$out/server.log"; exit 1; }
-    sleep 0.1
-done
-mapfile -t servers < <(sed -n 's/^listening on //p' "$out/server.out")
+# Training steps on two tcp:// servers; greedy evaluations block training and run on two
+# direct:// servers of their own, about twice as fast per step here (docs/learner.md).
+start_servers() {  # start_servers NAME SCHEME: two SUMO servers, their addresses in NAME.out
+    sim-server --bind "$2://127.0.0.1:0" --workers 2 --backend sumo \
+        >"$out/$1.out" 2>"$out/$1.log" &
+    pids+=($!)
+}
+pids=()
+trap 'kill "${pids[@]}" 2>/dev/null; wait "${pids[@]}" 2>/dev/null' EXIT
+start_servers server tcp
+start_servers eval-server direct
+addresses() {  # addresses NAME: wait for its two readiness lines (at most 120 s), print them
+    for _ in $(seq 1200); do
+        [ "$(grep -c '^listening on ' "$out/$1.out")" -ge 2 ] && break
+        kill -0 "${pids[@]}" 2>/dev/null || { cat "$out/$1.log"; exit 1; }
+        sleep 0.1
+    done
+    sed -n 's/^listening on //p' "$out/$1.out"
+}
+mapfile -t servers < <(addresses server)
+mapfile -t eval_servers < <(addresses eval-server)
 [ "${#servers[@]}" -ge 2 ] || { echo "sim-server did not start"; cat "$out/server.log"; exit 1; }
-echo "== two SUMO servers (libsumo) are listening on ${servers[*]}"
-both=(--server "${servers[0]}" --server "${servers[1]}")
+[ "${#eval_servers[@]}" -ge 2 ] || { echo "sim-server did not start"; cat "$out/eval-server.log"; exit 1; }
+echo "== four SUMO servers (libsumo) are listening: training on ${servers[*]}, evaluations on ${eval_servers[*]}"
+training=(--server "${servers[0]}" --server "${servers[1]}"
+      --eval-server "${eval_servers[0]}" --eval-server "${eval_servers[1]}"
+      --set eval_while_training=false)
 
 echo "== 1/5 calibrating IDM on the human drivers of cf"
 agent-client calibrate-idm --server "${servers[0]}" --scenario cf --out "$out/idm.json"
 
 echo "== 2/5 training the recommended learner (TD3) on cf"
-agent-client train "${both[@]}" --scenario cf --out "$out/train-cf" --episodes 1000 \
+agent-client train "${training[@]}" --scenario cf --out "$out/train-cf" --episodes 1000 \
     --minutes "${CF_MINUTES:-3}" --stop-when-converged
 echo "== evaluating the cf policy against the calibrated IDM"
-agent-client evaluate --server "${servers[0]}" --scenario cf --policy "$out/train-cf/policy.pt" \
+agent-client evaluate --server "${eval_servers[0]}" --scenario cf --policy "$out/train-cf/policy.pt" \
     --baseline "idm:$out/idm.json" --episodes "$episodes" --out "$out/eval/cf" \
     --run "$out/train-cf"
 
 echo "== 3/5 training the integrated car-following and lane-changing model on cflc"
-agent-client train "${both[@]}" --scenario cflc --out "$out/train-cflc" --episodes 1000 \
+agent-client train "${training[@]}" --scenario cflc --out "$out/train-cflc" --episodes 1000 \
     --minutes "${CFLC_MINUTES:-5}" --stop-when-converged
 echo "== 4/5 evaluating it against the cf policy and IDM"
-agent-client evaluate --server "${servers[0]}" --scenario cflc \
+agent-client evaluate --server "${eval_servers[0]}" --scenario cflc \
     --policy "$out/train-cflc/policy.pt" --baseline idm --cf-policy "$out/train-cf/policy.pt" \
     --episodes "$episodes" --out "$out/eval/cflc" --run "$out/train-cflc"
 
