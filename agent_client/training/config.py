@@ -97,7 +97,8 @@ class TrainConfig:
     noise_decay_steps: int = 100_000
     """Environment steps over which the noise scale decays linearly from 1 to noise_final."""
     eval_every: int = 10
-    """Greedy evaluation every N episodes (0 disables)."""
+    """Greedy evaluation every N episodes (0 disables), the first N episodes after learning
+    began (before, the policy is the initial one)."""
     eval_episodes: int = 10
     """Episodes per greedy evaluation."""
     eval_gate: int = 3

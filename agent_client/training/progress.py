@@ -49,6 +49,9 @@ class Progress:
     """Env steps the policy's evaluations drove."""
     evaluation_resume_step: int = 0
     """After a failed evaluation, no other before this training step (`TrainConfig.eval_budget`)."""
+    learning_episode: int | None = None
+    """Episodes finished when learning began (None before): the first policy evaluation comes
+    `TrainConfig.eval_every` episodes later, not while the policy is still the initial one."""
 
 
 @dataclass

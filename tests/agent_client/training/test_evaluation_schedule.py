@@ -67,6 +67,19 @@ def test_a_stopped_evaluation_is_recorded_as_a_failure_of_its_target(
     assert trainer.progress.evaluation_steps > 0
 
 
+def test_the_first_evaluation_comes_eval_every_episodes_after_learning_began(
+    fake_server: RunningServer, tmp_path: Path
+) -> None:
+    trainer = train(fake_server.address, tmp_path / "run", eval_budget=None, eval_every=4)
+    began = trainer.progress.learning_episode
+    assert began is not None and began >= 1  # learning_starts lies beyond the first episode
+    rows = read_rows(tmp_path / "run" / "evaluations.csv")
+    assert rows, "the run evaluated nothing"
+    first = int(rows[0]["episode"])
+    assert first - began >= 4 and first % 4 == 0
+    assert (first - 4) - began < 4  # the one due four episodes earlier came too soon: skipped
+
+
 @pytest.mark.parametrize("budget", [0.0, -0.5])
 def test_a_budget_must_be_positive(budget: float) -> None:
     with pytest.raises(UsageError, match="eval_budget must be > 0"):
