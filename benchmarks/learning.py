@@ -8,6 +8,7 @@ in a row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of lead
 1 s headway, speed >= IDM and >= 98 % of the leader-at-entry ceiling) or at the time budget.
 
     python benchmarks/learning.py --rewards safe ra3 --seeds 0 1 2 --minutes 15
+    python benchmarks/learning.py --rewards safe --seeds 0 1 2 --minutes 3 --config configs/cf.toml
 
 This is a measurement, not a test: it takes minutes per run and prints what it measured.
 """
@@ -26,7 +27,12 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent_client.training.config import TrainConfig, apply_overrides, parse_assignment
+from agent_client.training.config import (
+    TrainConfig,
+    apply_overrides,
+    load_config_file,
+    parse_assignment,
+)
 from agent_client.training.trainer import QuietReporter, Trainer
 from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
@@ -131,6 +137,9 @@ def main() -> int:
         "training instead; 0: inline on the training servers, as `agent-client train` does "
         "without --eval-server)",
     )
+    parser.add_argument(
+        "--config", type=Path, help="TOML (or JSON) file of settings, before --set (configs/)"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmark")
     parser.add_argument("--verbose", action="store_true")
     args = parser.parse_args()
@@ -151,6 +160,8 @@ def main() -> int:
                     "eval_while_training": not args.eval_servers,  # blocking on their own
                 },
             )
+            if args.config is not None:
+                config = apply_overrides(config, load_config_file(args.config))
             for assignment in args.set:
                 update = parse_assignment(assignment)
                 config = apply_overrides(config, update)
@@ -165,8 +176,9 @@ def main() -> int:
     print()
     print(table(results))
     machine = f"{platform.node()} {platform.machine()}, {platform.python_version()}"
-    payload = {"scenario": args.scenario, "machine": machine, "settings": args.set,
-               "results": results}  # fmt: skip
+    config_file = load_config_file(args.config) if args.config is not None else None
+    payload = {"scenario": args.scenario, "machine": machine, "config": config_file,
+               "settings": args.set, "results": results}  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"learning-{args.scenario}.json").write_text(json.dumps(payload, indent=2))
     print(f"\nwrote {args.out / f'learning-{args.scenario}.json'}")

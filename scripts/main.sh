@@ -4,8 +4,9 @@
 #   1. start four SUMO servers on free loopback ports, two to train on and two to evaluate on
 #      (waits for their readiness lines),
 #   2. calibrate IDM on the human drivers of cf,
-#   3. train the recommended learner (TD3) on cf until three greedy evaluations in a row meet
-#      every target (or the time cap), and evaluate it against the calibrated IDM,
+#   3. train the recommended learner (TD3) with the settings tuned for cf (configs/cf.toml)
+#      until three greedy evaluations in a row meet every target (or the time cap), and
+#      evaluate it against the calibrated IDM,
 #   4. train the integrated car-following and lane-changing model on cflc, and evaluate it
 #      against the cf policy (the paper's Fig. 13) and IDM,
 #   5. write one report of both.
@@ -51,8 +52,8 @@ training=(--server "${servers[0]}" --server "${servers[1]}"
 echo "== 1/5 calibrating IDM on the human drivers of cf"
 agent-client calibrate-idm --server "${servers[0]}" --scenario cf --out "$out/idm.json"
 
-echo "== 2/5 training the recommended learner (TD3) on cf"
-agent-client train "${training[@]}" --scenario cf --out "$out/train-cf" --episodes 1000 \
+echo "== 2/5 training the recommended learner (TD3) on cf, tuned for it (configs/cf.toml)"
+agent-client train "${training[@]}" --config configs/cf.toml --scenario cf --out "$out/train-cf" --episodes 1000 \
     --minutes "${CF_MINUTES:-3}" --stop-when-converged
 echo "== evaluating the cf policy against the calibrated IDM"
 agent-client evaluate --server "${eval_servers[0]}" --scenario cf --policy "$out/train-cf/policy.pt" \

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -109,3 +110,17 @@ def test_a_switch_takes_true_or_false_only(text: str) -> None:
     with pytest.raises(UsageError, match=f"{key} must be true or false"):
         apply_overrides(TrainConfig(), parse_assignment(text))
     assert apply_overrides(TrainConfig(), parse_assignment(f"{key}=false")).to_dict()[key] is False
+
+
+def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
+    root = Path(__file__).resolve().parents[3]
+    args = build_parser().parse_args(["train", "--config", str(root / "configs" / "cf.toml")])
+    config = build_config(args)
+    default = TrainConfig()
+    assert config.eval_budget == 1.0 != default.eval_budget
+    assert config.learner.deploy_tau == 0.001 != default.learner.deploy_tau
+    assert config.reward_fn().desired_headway == 1.1  # type: ignore[attr-defined]
+    # nothing else moves: the rest is the recommended configuration
+    rest = dataclasses.replace(config, eval_budget=default.eval_budget, reward_params={},
+                               learner=dataclasses.replace(config.learner, deploy_tau=default.learner.deploy_tau))  # fmt: skip
+    assert rest == default
