@@ -27,6 +27,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from agent_client.errors import UsageError
 from agent_client.training.config import (
     TrainConfig,
     apply_overrides,
@@ -144,6 +145,11 @@ def main() -> int:
     parser.add_argument("--verbose", action="store_true")
     args = parser.parse_args()
 
+    try:
+        config_file = load_config_file(args.config) if args.config is not None else None
+    except UsageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     results = []
     for reward in args.rewards:
         for seed in args.seeds:
@@ -160,8 +166,8 @@ def main() -> int:
                     "eval_while_training": not args.eval_servers,  # blocking on their own
                 },
             )
-            if args.config is not None:
-                config = apply_overrides(config, load_config_file(args.config))
+            if config_file is not None:
+                config = apply_overrides(config, config_file)
             for assignment in args.set:
                 update = parse_assignment(assignment)
                 config = apply_overrides(config, update)
@@ -176,7 +182,6 @@ def main() -> int:
     print()
     print(table(results))
     machine = f"{platform.node()} {platform.machine()}, {platform.python_version()}"
-    config_file = load_config_file(args.config) if args.config is not None else None
     payload = {"scenario": args.scenario, "machine": machine, "config": config_file,
                "settings": args.set, "results": results}  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)

@@ -121,6 +121,8 @@ def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
     assert config.learner.deploy_tau == 0.001 != default.learner.deploy_tau
     assert config.reward_fn().desired_headway == 1.1  # type: ignore[attr-defined]
     # nothing else moves: the rest is the recommended configuration
-    rest = dataclasses.replace(config, eval_budget=default.eval_budget, reward_params={},
-                               learner=dataclasses.replace(config.learner, deploy_tau=default.learner.deploy_tau))  # fmt: skip
+    learner = dataclasses.replace(config.learner, deploy_tau=default.learner.deploy_tau)
+    rest = dataclasses.replace(
+        config, eval_budget=default.eval_budget, reward_params={}, learner=learner
+    )
     assert rest == default
