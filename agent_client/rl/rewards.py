@@ -380,7 +380,8 @@ class SafeReward:
       earns less than following at the same speed (h_d lies between the evaluation's 1.0 s safety
       line and IDM's 1.5 s, so the learner follows a little closer than IDM). Above h_d,
       sigma_far (default inf) keeps H = 1: a far leader scores like an empty road, which has
-      H = 1 - good free driving, never below a crash.
+      H = 1 - good free driving, never below a crash. A finite sigma_far pays for closing up
+      to h_d, and w_far bounds what a far leader can cost (H >= 1 - w_far).
     - TTC = gap / (v - v_leader) when closing in; P = 1 - TTC / 4 s below 4 s, growing to 1 as
       TTC -> 0: the share of the drive term lost (a gate, not a subtraction, so the penalty keeps
       the step >= 0; see (a)).
@@ -389,6 +390,10 @@ class SafeReward:
       trip, and a cost in proportion to what the step earns, so a chattering (bang-bang)
       controller loses half its reward whatever its speed (docs/learner.md says why a gate and
       not an additive cost).
+
+    - ``stop_penalty`` (default 0) costs the step that ends an episode as an unreasonable
+      stop (the server's ``stopped``: standing with the road ahead free), a failure like a
+      crash, where 0 leaves it an end like the road's, which pays nothing more either.
 
     (a) Crashing never pays. Normal driving is >= 0 per step; the only negative collision-free
     terms are lane-change costs, at most c = 0.1 per step. Even the worst collision-free future
@@ -408,6 +413,10 @@ class SafeReward:
     """Log-normal sigma of H below h_d."""
     headway_far_sigma: float = math.inf
     """Log-normal sigma of H above h_d; inf keeps H = 1 for long headways."""
+    headway_far_weight: float = 1.0
+    """Share of the drive term a far leader can cost, in [0, 1]: above h_d,
+    H = 1 - w_far (1 - exp(-ln(h / h_d)^2 / (2 sigma_far^2))), so H never falls below
+    1 - w_far. 1 lets the far side fall to 0, as the plain log-normal does."""
     ttc_threshold: float = 4.0
     """s: TTC below this costs part of the drive term."""
     ttc_weight: float = 1.0
@@ -421,6 +430,9 @@ class SafeReward:
     """Cost of starting a lane change (against dithering)."""
     collision_penalty: float = 20.0
     """Cost of a collision (or of reversing), > `min_collision_penalty(0.99)` = 18."""
+    stop_penalty: float = 0.0
+    """Cost of the step that ends an episode as an unreasonable stop (``stopped``: standing
+    with the road ahead free); 0 leaves it an episode end like the road's."""
     fallback_speed_limit: float = REFERENCE_SPEED
     """m/s: used if the observation carries no positive speed limit."""
 
@@ -431,14 +443,21 @@ class SafeReward:
             raise ValueError("headway_far_sigma and ttc_threshold must be positive")
         if not 0.0 <= self.ttc_weight <= 1.0:
             raise ValueError(f"ttc_weight must be within [0, 1], got {self.ttc_weight}")
+        if not 0.0 <= self.headway_far_weight <= 1.0:
+            raise ValueError(
+                f"headway_far_weight must be within [0, 1], got {self.headway_far_weight}"
+            )
         if not 0.0 <= self.jerk_weight <= 1.0:
             raise ValueError(f"jerk_weight must be within [0, 1], got {self.jerk_weight}")
-        if min(self.refused_weight, self.lane_change_weight, self.collision_penalty) < 0.0:
-            raise ValueError("lane-change weights and the collision penalty must be non-negative")
+        if min(self.refused_weight, self.lane_change_weight, self.collision_penalty,
+               self.stop_penalty) < 0.0:  # fmt: skip
+            raise ValueError("lane-change weights and the penalties must be non-negative")
 
     def __call__(self, prev: Observation | None, obs: Observation, dt: float) -> float:
         if is_collision(obs) or obs.ego.speed < REVERSE_SPEED:
             return -self.collision_penalty
+        if self.stop_penalty and obs.reason == "stopped":
+            return -self.stop_penalty
         limit = obs.ego.speed_limit if obs.ego.speed_limit > 0.0 else self.fallback_speed_limit
         efficiency = min(max(obs.ego.speed / limit, 0.0), 1.0)
         drive = efficiency * self.headway_score(obs) * (1.0 - self.ttc_weight * self.ttc_cost(obs))
@@ -464,8 +483,10 @@ class SafeReward:
         if not headway > 1e-9:  # also catches an underflow to 0 (log domain)
             return 0.0
         ratio = math.log(min(headway, 1e9) / self.desired_headway)
-        sigma = self.headway_sigma if ratio < 0.0 else self.headway_far_sigma
-        return math.exp(-(ratio**2) / (2.0 * sigma**2))
+        if ratio < 0.0:
+            return math.exp(-(ratio**2) / (2.0 * self.headway_sigma**2))
+        far = math.exp(-(ratio**2) / (2.0 * self.headway_far_sigma**2))
+        return 1.0 - self.headway_far_weight * (1.0 - far)
 
     def ttc_cost(self, obs: Observation) -> float:
         """P in [0, 1]: 1 - TTC / threshold when closing in below the threshold, else 0."""

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -320,6 +321,37 @@ def test_safe_far_sigma_pays_for_closing_up_to_the_knee() -> None:
     assert at(1.5) == pytest.approx(15.0 / LIMIT * 0.9754, abs=1e-4)
     assert at(3.0) == pytest.approx(15.0 / LIMIT * 0.6572, abs=1e-4)
     assert at(1.0) == pytest.approx(safe_at(15.0, 1.0))  # below the knee: unchanged
+
+
+def test_safe_far_weight_bounds_what_a_far_leader_costs() -> None:
+    bounded = SafeReward(headway_far_sigma=0.5, headway_far_weight=0.2)
+
+    def at(headway: float) -> float:
+        return bounded(None, make_obs(speed=15.0, leader=lead(headway * 15.0, 15.0)), DT)
+
+    drive = 15.0 / LIMIT
+    assert at(1.2) == pytest.approx(drive)  # the peak stays at the knee
+    # 1 - 0.2 (1 - exp(-ln(h / 1.2)^2 / 0.5)), by hand: h = 2.0 -> 0.9187, 3.0 -> 0.8373
+    assert at(2.0) == pytest.approx(drive * 0.9187, abs=1e-4)
+    assert at(3.0) == pytest.approx(drive * 0.8373, abs=1e-4)
+    assert at(1.5) > at(2.0) > at(3.0) > at(12.0) >= 0.8 * drive  # closer pays, never below 0.8
+    assert at(1.0) == pytest.approx(safe_at(15.0, 1.0))  # below the knee: unchanged
+    no_leader = bounded(None, make_obs(speed=15.0), DT)
+    assert no_leader == pytest.approx(drive)  # an empty road is still the best there is
+    with pytest.raises(ValueError, match="headway_far_weight"):
+        SafeReward(headway_far_weight=1.5)
+
+
+def test_safe_stop_penalty_makes_an_unreasonable_stop_a_failure() -> None:
+    standing = make_obs(speed=0.5)
+    stopped = dataclasses.replace(standing, terminated=True, reason="stopped")
+    arrived = dataclasses.replace(standing, terminated=True, reason="end_of_road")
+    default, strict = SafeReward(), SafeReward(stop_penalty=20.0)
+    assert default(None, stopped, DT) == default(None, standing, DT) > 0.0  # 0: as before
+    assert strict(None, stopped, DT) == -20.0
+    assert strict(None, arrived, DT) == strict(None, standing, DT)  # only that end costs
+    with pytest.raises(ValueError, match="penalties must be non-negative"):
+        SafeReward(stop_penalty=-1.0)
 
 
 def test_safe_ttc_penalty() -> None:
