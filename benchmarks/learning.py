@@ -34,6 +34,7 @@ from agent_client.training.config import (
     load_config_file,
     parse_assignment,
 )
+from agent_client.training.progress import Profile
 from agent_client.training.trainer import QuietReporter, Trainer
 from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
@@ -110,11 +111,26 @@ def run_one(
         "eval_servers": eval_servers,
         "eval_while_training": config.eval_while_training,
         "evaluation_share": trainer.profile.evaluation_share(),
+        "evaluation_share_parts": evaluation_parts(trainer.profile, evaluations),
         "evaluation_episodes_run": sum(int(e["episodes"]) for e in evaluations),
         "evaluation_episodes_saved": sum(int(e.get("episodes_saved", 0)) for e in evaluations),
         "profile": trainer.profile.to_dict(),
         "last_evaluation": last,
         "evaluations": evaluations,
+    }
+
+
+def evaluation_parts(profile: Profile, evaluations: list[dict[str, Any]]) -> dict[str, float]:
+    """The evaluations' share of the loop's time, split: the IDM baseline, the passing
+    evaluations (which convergence needs in full: no schedule or screen may shorten them), and
+    the failed ones."""
+    total = profile.total or 1.0
+    passes = sum(e["seconds"] for e in evaluations if e["passed_in_a_row"] > 0)
+    failed = sum(e["seconds"] for e in evaluations if e["passed_in_a_row"] == 0)
+    return {
+        "baseline": profile.baseline_evaluation / total,
+        "passes": passes / total,
+        "failed": failed / total,
     }
 
 
@@ -212,7 +228,8 @@ def summary_line(result: dict[str, Any]) -> str:
 def table(results: list[dict[str, Any]]) -> str:
     lines = [
         "| reward | seed | converged at (min / episode / env steps) | collisions/ep | jerk>5.6 "
-        "| headway<1s | speed / IDM | speed / ceiling | evaluations' share "
+        "| headway<1s | speed / IDM | speed / ceiling "
+        "| evaluations' share (IDM baseline + passes + failed) "
         "| evaluations (episodes run / saved by screening) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
@@ -231,11 +248,16 @@ def table(results: list[dict[str, Any]]) -> str:
             f"| {100 * last.get('headway_share_below_1s', float('nan')):.2f}% "
             f"| {last.get('speed_ratio_to_idm', float('nan')):.3f} "
             f"| {last.get('speed_ratio_to_ceiling', float('nan')):.3f} "
-            f"| {100 * r['evaluation_share']:.0f}% "
+            f"| {100 * r['evaluation_share']:.0f}% ({share_parts(r)}) "
             f"| {len(r['evaluations'])} ({r['evaluation_episodes_run']} / "
             f"{r['evaluation_episodes_saved']}) |"
         )
     return "\n".join(lines)
+
+
+def share_parts(result: dict[str, Any]) -> str:
+    parts = result["evaluation_share_parts"]
+    return " + ".join(f"{100 * parts[name]:.0f}" for name in ("baseline", "passes", "failed"))
 
 
 if __name__ == "__main__":

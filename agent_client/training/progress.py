@@ -62,6 +62,8 @@ class Profile:
     iterations: int = 0
     blocking_evaluation: float = 0.0
     """Seconds spent in evaluations that training waited for (inline, or the IDM baseline)."""
+    baseline_evaluation: float = 0.0
+    """Of `blocking_evaluation`, the seconds of the IDM baseline's evaluation."""
 
     @property
     def total(self) -> float:
@@ -86,7 +88,11 @@ class Profile:
         )
         return {
             "iterations": self.iterations,
-            "seconds": {**self.seconds, "blocking_evaluation": self.blocking_evaluation},
+            "seconds": {
+                **self.seconds,
+                "blocking_evaluation": self.blocking_evaluation,
+                "baseline_evaluation": self.baseline_evaluation,
+            },
             "share": {name: seconds / total for name, seconds in self.seconds.items()}
             if total
             else {},

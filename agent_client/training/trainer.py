@@ -279,7 +279,9 @@ class Trainer:
             envs = self.eval_envs or self.vec.envs
             self.say(f"evaluating the IDM baseline on the evaluation seeds ({len(envs)} servers)")
             job = EvaluationJob("idm", self.idm, self._eval_seeds())
+            started = self.profile.blocking_evaluation
             summaries = self._resilient(lambda: self._run_inline(job, envs))
+            self.profile.baseline_evaluation += self.profile.blocking_evaluation - started
             self._set_idm_baseline(summaries)
             self.collector.drop_episodes()
         if self.config.pretrain_idm and self.progress.global_step == 0:

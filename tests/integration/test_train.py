@@ -313,6 +313,12 @@ def test_with_eval_while_training_off_evaluations_block_on_their_own_server(
             trainer.close()
     assert trainer.evaluator is None  # nothing runs beside training
     assert len(progress.evaluations) >= 3
+    # The blocking time is the IDM baseline's and the evaluations' own, each counted once.
+    profile = trainer.profile
+    assert 0 < profile.baseline_evaluation < profile.blocking_evaluation
+    assert profile.blocking_evaluation == pytest.approx(
+        profile.baseline_evaluation + sum(e["seconds"] for e in progress.evaluations), abs=0.05
+    )
     held_out = set(range(config.eval_seed, config.eval_seed + config.eval_episodes))
     # Every evaluation, the IDM baseline's too, ran on the evaluation server alone.
     trained = {name: [s for s in seeds[name] if s not in held_out] for name in seeds}
