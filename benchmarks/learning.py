@@ -122,15 +122,17 @@ def run_one(
 
 def evaluation_parts(profile: Profile, evaluations: list[dict[str, Any]]) -> dict[str, float]:
     """The evaluations' share of the loop's time, split: the IDM baseline, the passing
-    evaluations (which convergence needs in full: no schedule or screen may shorten them), and
-    the failed ones."""
+    evaluations (which convergence needs in full: no schedule or screen may shorten them), the
+    failed ones, and the rest (an evaluation given up, or still running at the end)."""
     total = profile.total or 1.0
     passes = sum(e["seconds"] for e in evaluations if e["passed_in_a_row"] > 0)
     failed = sum(e["seconds"] for e in evaluations if e["passed_in_a_row"] == 0)
+    other = profile.evaluation_seconds - profile.baseline_evaluation - passes - failed
     return {
         "baseline": profile.baseline_evaluation / total,
         "passes": passes / total,
         "failed": failed / total,
+        "other": max(other, 0.0) / total,
     }
 
 
@@ -257,7 +259,9 @@ def table(results: list[dict[str, Any]]) -> str:
 
 def share_parts(result: dict[str, Any]) -> str:
     parts = result["evaluation_share_parts"]
-    return " + ".join(f"{100 * parts[name]:.0f}" for name in ("baseline", "passes", "failed"))
+    text = " + ".join(f"{100 * parts[name]:.0f}" for name in ("baseline", "passes", "failed"))
+    other = parts.get("other", 0.0)
+    return f"{text} + {100 * other:.0f} other" if other >= 0.005 else text
 
 
 if __name__ == "__main__":

@@ -371,7 +371,7 @@ class SafeReward:
 
     with the comfort gate C(jerk) = 1 - w_jerk * min((jerk / 5.6)^2, 1), and
     ``-collision_penalty`` (20) on a collision or reversing step, so every step lies in
-    [-0.1, 1] or is exactly -20.
+    [-0.1, 1] or is exactly -20 (or ``-stop_penalty``, at most that, on an unreasonable stop).
 
     - Efficiency v / v_limit (``obs.ego.speed_limit``), clipped to [0, 1]: speeding never pays.
     - Headway h = gap / v; H(h) = exp(-ln(h / h_d)^2 / (2 sigma^2)), the log-normal headway
@@ -396,7 +396,8 @@ class SafeReward:
       crash, where 0 leaves it an end like the road's, which pays nothing more either.
 
     (a) Crashing never pays. Normal driving is >= 0 per step; the only negative collision-free
-    terms are lane-change costs, at most c = 0.1 per step. Even the worst collision-free future
+    terms are lane-change costs, at most c = 0.1 per step, and the stop penalty, which ends the
+    episode and may not exceed the collision penalty. Even the worst collision-free future
     is worth >= -c / (1 - gamma) = -0.1 / 0.01 = -10 at gamma = 0.99, above the -20 of crashing
     now: at no state is a crash (or any episode end) better than going on.
     `min_collision_penalty(gamma)` gives the bound for other gammas.
@@ -452,6 +453,11 @@ class SafeReward:
         if min(self.refused_weight, self.lane_change_weight, self.collision_penalty,
                self.stop_penalty) < 0.0:  # fmt: skip
             raise ValueError("lane-change weights and the penalties must be non-negative")
+        if self.stop_penalty > self.collision_penalty:
+            raise ValueError(
+                f"stop_penalty {self.stop_penalty} must not exceed collision_penalty "
+                f"{self.collision_penalty}: a crash would then pay better than a stop"
+            )
 
     def __call__(self, prev: Observation | None, obs: Observation, dt: float) -> float:
         if is_collision(obs) or obs.ego.speed < REVERSE_SPEED:
@@ -486,6 +492,8 @@ class SafeReward:
         if ratio < 0.0:
             return math.exp(-(ratio**2) / (2.0 * self.headway_sigma**2))
         far = math.exp(-(ratio**2) / (2.0 * self.headway_far_sigma**2))
+        if self.headway_far_weight == 1.0:
+            return far  # the plain log-normal, to the last bit
         return 1.0 - self.headway_far_weight * (1.0 - far)
 
     def ttc_cost(self, obs: Observation) -> float:
@@ -498,13 +506,14 @@ class SafeReward:
         return max(0.0, 1.0 - ttc / self.ttc_threshold)
 
     def worst_step(self) -> float:
-        """Lowest reward of a collision-free step (<= 0)."""
+        """Lowest reward of a collision-free step that lets the episode go on (<= 0)."""
         return -max(self.refused_weight, self.lane_change_weight)
 
     def min_collision_penalty(self, gamma: float) -> float:
-        """Penalty above which a crash is worse than the worst collision-free future."""
+        """Penalty above which a crash is worse than the worst collision-free future (going on
+        at `worst_step` for ever, or ending in an unreasonable stop)."""
         _check_gamma(gamma)
-        return -self.worst_step() / (1.0 - gamma)
+        return max(-self.worst_step() / (1.0 - gamma), self.stop_penalty)
 
 
 # --------------------------------------------------------------------------- the ring's waves

@@ -209,7 +209,6 @@ class Trainer:
         self._evaluation_wanted = False
         self._evaluation_due = False
         """An evaluation is due but waits for the gate or for `eval_budget`."""
-        self._evaluation_spent_before = 0.0
         self._failures_in_a_row = 0
         self._recent_collisions: deque[bool] = deque(maxlen=max(config.eval_gate, 1))
         self._finished_evaluation: tuple[EvaluationJob, list[EpisodeSummary]] | None = None
@@ -504,6 +503,7 @@ class Trainer:
             "episode": self.progress.episode,
             "global_step": self.progress.global_step,
             "policy_state": state,
+            "evaluation_seconds_before": self.profile.evaluation_seconds,
         }
         seeds = self._eval_seeds()
         # Inline (on the training servers, or on evaluation servers with eval_while_training
@@ -512,7 +512,6 @@ class Trainer:
         inline = self.evaluator is None
         screen = self._screen(len(seeds)) if self.config.eval_screen and inline else None
         job = EvaluationJob("policy", driver, seeds, context, stop_on_collision=True, screen=screen)
-        self._evaluation_spent_before = self.profile.evaluation_seconds
         if self.evaluator is not None:
             self.evaluator.start(job)
             return
@@ -567,7 +566,9 @@ class Trainer:
         if job.stopped is not None:  # failed for certain, whatever the partial figures say
             met[job.stopped] = False
         complete = len(summaries) == len(job.seeds)
-        seconds = self.profile.evaluation_seconds - self._evaluation_spent_before
+        # From this job's start (on the evaluation servers the next may start before this one
+        # is booked).
+        seconds = self.profile.evaluation_seconds - job.context["evaluation_seconds_before"]
         steps = sum(s.steps for s in summaries)
         progress = self.progress
         progress.evaluation_steps += steps

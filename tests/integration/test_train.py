@@ -277,9 +277,14 @@ def test_evaluations_run_on_their_own_server_while_training_goes_on(
     assert progress.evaluations, "no evaluation finished while training"
     assert trainer.profile.seconds["evaluation"] > 0  # it ran inside the training iterations
     assert trainer.profile.blocking_evaluation < 60  # only the IDM baseline blocked
+    assert trainer.profile.baseline_evaluation == trainer.profile.blocking_evaluation
     rows = read_rows(tmp_path / "evaluations.csv")
     assert len(rows) == len(progress.evaluations)
     assert all(int(r["episodes"]) == 2 for r in rows)
+    # Each evaluation's seconds are its own, from its start, within the iterations' share.
+    seconds = [float(r["seconds"]) for r in rows]
+    assert all(s > 0 for s in seconds)
+    assert sum(seconds) <= trainer.profile.seconds["evaluation"] + 1e-6
 
 
 def test_with_eval_while_training_off_evaluations_block_on_their_own_server(

@@ -340,6 +340,13 @@ def test_safe_far_weight_bounds_what_a_far_leader_costs() -> None:
     assert no_leader == pytest.approx(drive)  # an empty road is still the best there is
     with pytest.raises(ValueError, match="headway_far_weight"):
         SafeReward(headway_far_weight=1.5)
+    flat = SafeReward(headway_far_weight=0.2)  # sigma_far inf: the weight changes nothing
+    assert flat(None, make_obs(speed=15.0, leader=lead(45.0, 15.0)), DT) == safe_at(15.0, 3.0)
+    plain = SafeReward(headway_far_sigma=1.0)  # weight 1: the log-normal, bit for bit
+    for h in (1.3, 2.0, 7.5):
+        obs = make_obs(speed=15.0, leader=lead(h * 15.0, 15.0))
+        ratio = math.log((h * 15.0 / 15.0) / 1.2)
+        assert plain.headway_score(obs) == math.exp(-(ratio**2) / 2.0)
 
 
 def test_safe_stop_penalty_makes_an_unreasonable_stop_a_failure() -> None:
@@ -350,8 +357,13 @@ def test_safe_stop_penalty_makes_an_unreasonable_stop_a_failure() -> None:
     assert default(None, stopped, DT) == default(None, standing, DT) > 0.0  # 0: as before
     assert strict(None, stopped, DT) == -20.0
     assert strict(None, arrived, DT) == strict(None, standing, DT)  # only that end costs
+    crash_and_stop = dataclasses.replace(stopped, events=Events(collision=True), reason="collision")
+    assert strict(None, crash_and_stop, DT) == -20.0  # a crash is a crash
+    assert strict.min_collision_penalty(0.99) == 20.0  # the stop sets the bound now
     with pytest.raises(ValueError, match="penalties must be non-negative"):
         SafeReward(stop_penalty=-1.0)
+    with pytest.raises(ValueError, match="must not exceed collision_penalty"):
+        SafeReward(stop_penalty=30.0)
 
 
 def test_safe_ttc_penalty() -> None:
