@@ -119,7 +119,10 @@ def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
     default = TrainConfig()
     assert config.eval_budget == 1.0 != default.eval_budget
     assert config.learner.deploy_tau == 0.001 != default.learner.deploy_tau
-    assert config.reward_fn().desired_headway == 1.1  # type: ignore[attr-defined]
+    reward = config.reward_fn()
+    assert reward.desired_headway == 1.1  # type: ignore[attr-defined]
+    assert reward.headway_far_sigma == 0.5  # type: ignore[attr-defined]
+    assert reward.headway_far_weight == 0.5  # type: ignore[attr-defined]
     # nothing else moves: the rest is the recommended configuration
     learner = dataclasses.replace(config.learner, deploy_tau=default.learner.deploy_tau)
     rest = dataclasses.replace(
