@@ -118,6 +118,7 @@ def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
     config = build_config(args)
     default = TrainConfig()
     assert config.eval_budget == 1.0 != default.eval_budget
+    assert config.warmup_policy == "random" != default.warmup_policy
     assert config.learner.deploy_tau == 0.001 != default.learner.deploy_tau
     reward = config.reward_fn()
     assert reward.desired_headway == 1.1  # type: ignore[attr-defined]
@@ -126,6 +127,10 @@ def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
     # nothing else moves: the rest is the recommended configuration
     learner = dataclasses.replace(config.learner, deploy_tau=default.learner.deploy_tau)
     rest = dataclasses.replace(
-        config, eval_budget=default.eval_budget, reward_params={}, learner=learner
+        config,
+        eval_budget=default.eval_budget,
+        warmup_policy=default.warmup_policy,
+        reward_params={},
+        learner=learner,
     )
     assert rest == default
