@@ -120,6 +120,11 @@ def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
     assert config.eval_budget == 1.0 != default.eval_budget
     assert config.warmup_policy == "random" != default.warmup_policy
     assert config.learner.deploy_tau == 0.001 != default.learner.deploy_tau
+    assert config.reward_params == {  # exactly these: an extra key would change the reward too
+        "desired_headway": 1.1,
+        "headway_far_sigma": 0.5,
+        "headway_far_weight": 0.5,
+    }
     reward = config.reward_fn()
     assert reward.desired_headway == 1.1  # type: ignore[attr-defined]
     assert reward.headway_far_sigma == 0.5  # type: ignore[attr-defined]
