@@ -7,10 +7,11 @@
 #   3. train the recommended learner (TD3) with the settings tuned for cf (configs/cf.toml)
 #      until three greedy evaluations in a row meet every target (or the time cap), and
 #      evaluate it against the calibrated IDM,
-#   4. train the integrated car-following and lane-changing model on cflc, and evaluate it
+#   4. train the integrated car-following and lane-changing model on cflc (configs/cflc.toml:
+#      random warm-up actions), and evaluate it
 #      against the cf policy (the paper's Fig. 13) and IDM,
 #   5. write one report of both.
-# Takes about 10-12 minutes on 2 cores; shows progress throughout.
+# Takes about 5 minutes on 2 cores (at most 12); shows progress throughout.
 # Environment: CF_MINUTES (training cap on cf, default 3), CFLC_MINUTES (default 5),
 # EVAL_EPISODES (default 20), OUT.
 set -euo pipefail
@@ -60,8 +61,8 @@ agent-client evaluate --server "${eval_servers[0]}" --scenario cf --policy "$out
     --baseline "idm:$out/idm.json" --episodes "$episodes" --out "$out/eval/cf" \
     --run "$out/train-cf"
 
-echo "== 3/5 training the integrated car-following and lane-changing model on cflc"
-agent-client train "${training[@]}" --scenario cflc --out "$out/train-cflc" --episodes 1000 \
+echo "== 3/5 training the integrated car-following and lane-changing model on cflc (configs/cflc.toml)"
+agent-client train "${training[@]}" --config configs/cflc.toml --scenario cflc --out "$out/train-cflc" --episodes 1000 \
     --minutes "${CFLC_MINUTES:-5}" --stop-when-converged
 echo "== 4/5 evaluating it against the cf policy and IDM"
 agent-client evaluate --server "${eval_servers[0]}" --scenario cflc \

@@ -139,3 +139,17 @@ def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
         learner=learner,
     )
     assert rest == default
+
+
+def test_the_shipped_cflc_configuration_loads_and_changes_what_it_says() -> None:
+    root = Path(__file__).resolve().parents[3]
+    args = build_parser().parse_args(["train", "--config", str(root / "configs" / "cflc.toml")])
+    config = build_config(args)
+    default = TrainConfig()
+    assert config.scenario == "cflc" != default.scenario
+    assert config.warmup_policy == "random" != default.warmup_policy
+    # nothing else moves: the rest is the recommended configuration
+    rest = dataclasses.replace(
+        config, scenario=default.scenario, warmup_policy=default.warmup_policy
+    )
+    assert rest == default
