@@ -1,16 +1,15 @@
 #!/usr/bin/env bash
 # The main job on the embedded default (libsumo), both of the paper's cases, end to end through
-# the bridge, in one report:
-#   1. start four SUMO servers on free loopback ports, two to train on and two to evaluate on
-#      (waits for their readiness lines),
-#   2. calibrate IDM on the human drivers of cf,
-#   3. train the recommended learner (TD3) with the settings tuned for cf (configs/cf.toml)
+# the bridge, in one report. It starts four SUMO servers on free loopback ports, two to train
+# on and two to evaluate on (and waits for their readiness lines), then:
+#   1. calibrates IDM on the human drivers of cf,
+#   2. trains the recommended learner (TD3) with the settings tuned for cf (configs/cf.toml)
 #      until three greedy evaluations in a row meet every target (or the time cap), and
-#      evaluate it against the calibrated IDM,
-#   4. train the integrated car-following and lane-changing model on cflc (configs/cflc.toml:
-#      random warm-up actions), and evaluate it
-#      against the cf policy (the paper's Fig. 13) and IDM,
-#   5. write one report of both.
+#      evaluates it against the calibrated IDM,
+#   3. trains the integrated car-following and lane-changing model on cflc (configs/cflc.toml:
+#      random warm-up actions),
+#   4. evaluates it against the cf policy (the paper's Fig. 13) and IDM,
+#   5. writes one report of both.
 # Takes about 5 minutes on 2 cores (at most 12); shows progress throughout.
 # Environment: CF_MINUTES (training cap on cf, default 3), CFLC_MINUTES (default 5),
 # EVAL_EPISODES (default 20), OUT.
