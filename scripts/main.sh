@@ -61,7 +61,8 @@ agent-client evaluate --server "${eval_servers[0]}" --scenario cf --policy "$out
     --run "$out/train-cf"
 
 echo "== 3/5 training the integrated car-following and lane-changing model on cflc (configs/cflc.toml)"
-agent-client train "${training[@]}" --config configs/cflc.toml --scenario cflc --out "$out/train-cflc" --episodes 1000 \
+agent-client train "${training[@]}" --config configs/cflc.toml --scenario cflc \
+    --out "$out/train-cflc" --episodes 1000 \
     --minutes "${CFLC_MINUTES:-5}" --stop-when-converged
 echo "== 4/5 evaluating it against the cf policy and IDM"
 agent-client evaluate --server "${eval_servers[0]}" --scenario cflc \

@@ -112,10 +112,14 @@ def test_a_switch_takes_true_or_false_only(text: str) -> None:
     assert apply_overrides(TrainConfig(), parse_assignment(f"{key}=false")).to_dict()[key] is False
 
 
+def _shipped(name: str) -> TrainConfig:
+    """A file of configs/ as `agent-client train --config` reads it."""
+    path = Path(__file__).resolve().parents[3] / "configs" / name
+    return build_config(build_parser().parse_args(["train", "--config", str(path)]))
+
+
 def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
-    root = Path(__file__).resolve().parents[3]
-    args = build_parser().parse_args(["train", "--config", str(root / "configs" / "cf.toml")])
-    config = build_config(args)
+    config = _shipped("cf.toml")
     default = TrainConfig()
     assert config.eval_budget == 1.0 != default.eval_budget
     assert config.warmup_policy == "random" != default.warmup_policy
@@ -142,9 +146,7 @@ def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
 
 
 def test_the_shipped_cflc_configuration_loads_and_changes_what_it_says() -> None:
-    root = Path(__file__).resolve().parents[3]
-    args = build_parser().parse_args(["train", "--config", str(root / "configs" / "cflc.toml")])
-    config = build_config(args)
+    config = _shipped("cflc.toml")
     default = TrainConfig()
     assert config.scenario == "cflc" != default.scenario
     assert config.warmup_policy == "random" != default.warmup_policy
