@@ -10,6 +10,11 @@ in a row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of lead
     python benchmarks/learning.py --rewards safe ra3 --seeds 0 1 2 --minutes 15
     python benchmarks/learning.py --rewards safe --seeds 0 1 2 --minutes 3 --config configs/cf.toml
 
+With --without-evaluations each converged seed is trained again to the episode where it
+converged, without evaluations: the same training (evaluations on servers of their own do not
+change it), so the difference in wall time is what the evaluations cost the run, whatever the
+profile attributes to them.
+
 This is a measurement, not a test: it takes minutes per run and prints what it measured.
 """
 
@@ -120,6 +125,34 @@ def run_one(
     }
 
 
+def rerun_without_evaluations(
+    config: TrainConfig, result: dict[str, Any], folder: Path, servers: int
+) -> dict[str, Any]:
+    """Train `result`'s seed again to the episode where it converged, without evaluations; the
+    evaluations' cost is the difference in wall time (the training must be the same: checked)."""
+    episodes = result["episodes_to_converge"]
+    bare = apply_overrides(config, {"eval_every": 0, "episodes": episodes})
+    again = run_one(bare, folder.with_name(folder.name + "-without-evaluations"), 60.0, False,
+                    servers, 0)  # fmt: skip
+    same = again["steps_run"] == result["steps_to_converge"]
+    seconds, bare_seconds = 60 * result["minutes_to_converge"], 60 * again["minutes_run"]
+    cost = {
+        "seconds": bare_seconds,
+        "steps": again["steps_run"],
+        "same_training": same,
+        "evaluation_cost_seconds": seconds - bare_seconds,
+        "evaluation_cost_share": (seconds - bare_seconds) / seconds,
+    }
+    print(
+        f"   without evaluations: {bare_seconds:.1f} s to episode {episodes} "
+        f"({again['steps_run']} env steps{'' if same else ', NOT the same training'}); the "
+        f"evaluations cost {seconds - bare_seconds:.1f} s of {seconds:.1f} "
+        f"({100 * cost['evaluation_cost_share']:.0f} %)",
+        flush=True,
+    )
+    return cost
+
+
 def evaluation_parts(profile: Profile, evaluations: list[dict[str, Any]]) -> dict[str, float]:
     """The evaluations' share of the loop's time, split: the IDM baseline, the passing
     evaluations (which convergence needs in full: no schedule or screen may shorten them), the
@@ -161,6 +194,12 @@ def main() -> int:
     )
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmark")
     parser.add_argument("--verbose", action="store_true")
+    parser.add_argument(
+        "--without-evaluations",
+        action="store_true",
+        help="train each converged seed again to its converged episode without evaluations, and "
+        "report what the evaluations cost (the difference in wall time)",
+    )
     args = parser.parse_args()
 
     try:
@@ -194,6 +233,10 @@ def main() -> int:
             result = run_one(
                 config, folder, args.minutes, args.verbose, args.servers, args.eval_servers
             )
+            if args.without_evaluations and result["converged"]:
+                result["without_evaluations"] = rerun_without_evaluations(
+                    config, result, folder, args.servers
+                )
             results.append(result)
             print(f"   {summary_line(result)}", flush=True)
 
