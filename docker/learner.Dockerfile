@@ -42,6 +42,9 @@ COPY --chmod=0755 docker/resolve-servers.sh /usr/local/bin/resolve-servers
 # The same uid as the server image (see there): both read the keys of one volume.
 RUN useradd --uid 10001 --create-home --shell /usr/sbin/nologin app \
     && mkdir /keys /home/app/runs && chown app:app /keys /home/app/runs
+# The tuned settings (`agent-client train --config configs/cf.toml` from the working directory),
+# read-only; copied after the user exists, so that its home stays its own.
+COPY configs /home/app/configs
 USER app
 # `agent-client train` writes runs/NAME here by default: mount a volume on /home/app/runs.
 WORKDIR /home/app

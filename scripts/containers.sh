@@ -231,11 +231,12 @@ if [ "${SCALE:-1}" != 0 ]; then
     podman_ exec "${replicas[0]}" python -c \
         "import socket; socket.create_connection(('127.0.0.1', 5555), 2).close()"
     say "compose healthcheck command: exit 0"
-    say "learner container: resolve-servers server:5555 agent-client train --episodes 2"
+    say "learner container: resolve-servers server:5555 agent-client train --config configs/cf.toml --episodes 2"
     start=$(date +%s)
     podman_ run --rm "${limits[@]}" --network "$network" "${mounts[@]}" "${learner_env[@]}" \
         --entrypoint resolve-servers "$LEARNER_IMAGE" server:5555 agent-client \
-        train --scenario cf --episodes 2 --set eval_every=0 --quiet --out /tmp/scale-test 2>&1 |
+        train --config configs/cf.toml --scenario cf --episodes 2 --set eval_every=0 --quiet \
+        --out /tmp/scale-test 2>&1 |
         grep -v '^\s*$' | tail -n 8 | sed 's/^/   /'
     served1=$(hellos "${replicas[0]}")
     served2=$(hellos "${replicas[1]}")

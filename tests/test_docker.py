@@ -417,6 +417,17 @@ def test_learner_image_installs_resolve_servers() -> None:
     ), copies
 
 
+def test_learner_image_ships_the_configs_in_its_working_directory() -> None:
+    final = dockerfile("learner").final
+    workdir = final.last("WORKDIR")
+    copy = ("COPY", f"configs {workdir}/configs")  # --config configs/cf.toml works there
+    assert copy in final.instructions
+    assert (ROOT / "configs" / "cf.toml").is_file()
+    # after the user and its home exist: a COPY first would create the home as root's
+    useradd = next(i for i, (kw, args) in enumerate(final.instructions) if "useradd" in args)
+    assert final.instructions.index(copy) > useradd
+
+
 @pytest.mark.parametrize("image", IMAGES)
 def test_copied_files_exist(image: str) -> None:
     for stage in dockerfile(image).stages:
