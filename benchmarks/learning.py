@@ -126,28 +126,38 @@ def run_one(
 
 
 def rerun_without_evaluations(
-    config: TrainConfig, result: dict[str, Any], folder: Path, servers: int
+    config: TrainConfig, result: dict[str, Any], folder: Path, servers: int, verbose: bool
 ) -> dict[str, Any]:
     """Train `result`'s seed again to the episode where it converged, without evaluations; the
-    evaluations' cost is the difference in wall time (the training must be the same: checked)."""
+    evaluations' cost is the difference in wall time. Only where the training is the same (the
+    same env steps and updates at that episode: evaluations on servers of their own leave it
+    alone); else the cost is None."""
     episodes = result["episodes_to_converge"]
     bare = apply_overrides(config, {"eval_every": 0, "episodes": episodes})
-    again = run_one(bare, folder.with_name(folder.name + "-without-evaluations"), 60.0, False,
+    again = run_one(bare, folder.with_name(folder.name + "-without-evaluations"), 60.0, verbose,
                     servers, 0)  # fmt: skip
-    same = again["steps_run"] == result["steps_to_converge"]
+    # Both stop after the iteration in which that episode ended (the evaluated run as it converges)
+    ran = ("steps_run", "updates_run")
+    same = all(again[key] == result[key] for key in ran)
     seconds, bare_seconds = 60 * result["minutes_to_converge"], 60 * again["minutes_run"]
     cost = {
         "seconds": bare_seconds,
         "steps": again["steps_run"],
+        "updates": again["updates_run"],
         "same_training": same,
-        "evaluation_cost_seconds": seconds - bare_seconds,
-        "evaluation_cost_share": (seconds - bare_seconds) / seconds,
+        "evaluation_cost_seconds": seconds - bare_seconds if same else None,
+        "evaluation_cost_share": (seconds - bare_seconds) / seconds if same else None,
+        "profile": again["profile"],
     }
     print(
         f"   without evaluations: {bare_seconds:.1f} s to episode {episodes} "
-        f"({again['steps_run']} env steps{'' if same else ', NOT the same training'}); the "
-        f"evaluations cost {seconds - bare_seconds:.1f} s of {seconds:.1f} "
-        f"({100 * cost['evaluation_cost_share']:.0f} %)",
+        f"({again['steps_run']} env steps); "
+        + (
+            f"the evaluations cost {seconds - bare_seconds:.1f} s of {seconds:.1f} "
+            f"({100 * (seconds - bare_seconds) / seconds:.0f} %)"
+            if same
+            else "NOT the same training: no cost computed"
+        ),
         flush=True,
     )
     return cost
@@ -201,6 +211,13 @@ def main() -> int:
         "report what the evaluations cost (the difference in wall time)",
     )
     args = parser.parse_args()
+    if args.without_evaluations and not args.eval_servers:
+        print(
+            "error: --without-evaluations needs --eval-servers: inline evaluations on the "
+            "training servers change the training, so a run without them is not the same run",
+            file=sys.stderr,
+        )
+        return 2
 
     try:
         config_file = load_config_file(args.config) if args.config is not None else None
@@ -235,7 +252,7 @@ def main() -> int:
             )
             if args.without_evaluations and result["converged"]:
                 result["without_evaluations"] = rerun_without_evaluations(
-                    config, result, folder, args.servers
+                    config, result, folder, args.servers, args.verbose
                 )
             results.append(result)
             print(f"   {summary_line(result)}", flush=True)

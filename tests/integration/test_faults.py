@@ -83,7 +83,7 @@ def seconds_until_served(address: str, limit_s: float) -> float:
 
 FREED_BY_THE_DISCONNECT_S = HEARTBEAT_TIMEOUT_MS / 1000 / 2
 """Sooner than the heartbeat timeout could free a session: the server saw the connection close
-(what it must do for a killed learner), not a peer that went silent (5 s)."""
+(what it must do for a killed learner), not a peer that went silent."""
 
 
 def is_busy(address: str) -> bool:
