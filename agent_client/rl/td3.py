@@ -122,7 +122,8 @@ class TD3Config:
     """Critic regression loss: "mse" or "huber" (delta 1)."""
     compile: bool = True
     """Compile the update step (torch.compile, ~15 s the first time; cached on disk, ~4 s to
-    load in each new process): ~3.5x faster updates. Off, the same functions run eagerly (for tests and debugging)."""
+    load in each new process): ~3.5x faster updates. Off, the same functions run eagerly (for
+    tests and debugging)."""
 
     def __post_init__(self) -> None:
         if not self.hidden_sizes or any(h < 1 for h in self.hidden_sizes):
