@@ -140,27 +140,23 @@ def rerun_without_evaluations(
     ran = ("steps_run", "updates_run")
     same = all(again[key] == result[key] for key in ran)
     seconds, bare_seconds = 60 * result["minutes_to_converge"], 60 * again["minutes_run"]
-    cost = {
+    extra = seconds - bare_seconds if same else None
+    verdict = (
+        f"the evaluations cost {extra:.1f} s of {seconds:.1f} ({100 * extra / seconds:.0f} %)"
+        if extra is not None
+        else "NOT the same training: no cost computed"
+    )
+    print(f"   without evaluations: {bare_seconds:.1f} s to episode {episodes} "
+          f"({again['steps_run']} env steps); {verdict}", flush=True)  # fmt: skip
+    return {
         "seconds": bare_seconds,
         "steps": again["steps_run"],
         "updates": again["updates_run"],
         "same_training": same,
-        "evaluation_cost_seconds": seconds - bare_seconds if same else None,
-        "evaluation_cost_share": (seconds - bare_seconds) / seconds if same else None,
+        "evaluation_cost_seconds": extra,
+        "evaluation_cost_share": None if extra is None else extra / seconds,
         "profile": again["profile"],
     }
-    print(
-        f"   without evaluations: {bare_seconds:.1f} s to episode {episodes} "
-        f"({again['steps_run']} env steps); "
-        + (
-            f"the evaluations cost {seconds - bare_seconds:.1f} s of {seconds:.1f} "
-            f"({100 * (seconds - bare_seconds) / seconds:.0f} %)"
-            if same
-            else "NOT the same training: no cost computed"
-        ),
-        flush=True,
-    )
-    return cost
 
 
 def evaluation_parts(profile: Profile, evaluations: list[dict[str, Any]]) -> dict[str, float]:

@@ -81,9 +81,10 @@ def seconds_until_served(address: str, limit_s: float) -> float:
         return waited
 
 
-FREED_BY_THE_DISCONNECT_S = HEARTBEAT_TIMEOUT_MS / 1000 / 2
-"""Sooner than the heartbeat timeout could free a session: the server saw the connection close
-(what it must do for a killed learner), not a peer that went silent."""
+FREED_BY_THE_DISCONNECT_S = 0.4 * HEARTBEAT_TIMEOUT_MS / 1000
+"""Well before the heartbeat timeout could free a session (2 s of 5): the server saw the
+connection close (what it must do for a killed learner), not a peer that went silent. Measured
+here: at most 4 ms over 40 killed learners."""
 
 
 def is_busy(address: str) -> bool:
