@@ -389,7 +389,7 @@ class FakeBackend(Backend):
             acc, why = limit_acceleration(request, state.ego_speed, SPEED_LIMIT, low, high, DT)
             limited_by = limited_by or why
             state.ego_pos += state.ego_speed * DT + 0.5 * acc * DT * DT
-            state.ego_speed += acc * DT
+            state.ego_speed = max(0.0, state.ego_speed + acc * DT)  # standstill: exactly 0
             state.ego_acc = acc
             state.lead_speed = min(
                 SPEED_LIMIT, max(0.0, state.lead_speed + state.rng.gauss(0, 0.3))

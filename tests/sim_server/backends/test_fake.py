@@ -3,6 +3,7 @@ with many egos (protocol 1.4) each ego is judged alone and the time limit ends t
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable
 
 import pytest
@@ -74,6 +75,18 @@ def test_limits_are_those_of_the_shared_rule(backend: FakeBackend) -> None:
     halted = run(backend, -6.0)
     assert halted[-1].ego.speed == 0.0
     assert any(o.action.acceleration_limited_by == "standstill" for o in halted)
+
+
+def test_a_speed_brought_to_standstill_is_never_negative(backend: FakeBackend) -> None:
+    # -speed / DT * DT rounds to -1e-17 on some speeds: the protocol's speed >= 0 must hold
+    rng = random.Random(0)
+    for seed in range(10):
+        reset(backend, seed, stop_speed=0.0, stop_patience=0.0)
+        for seq in range(1, 100_000):
+            obs = backend.step(seq, rng.uniform(-6.0, 1.0), 0)
+            assert obs.ego.speed >= 0.0, (seed, seq, obs.ego.speed)
+            if obs.terminated or obs.truncated:
+                break
 
 
 def test_one_lane_refuses_every_lane_change(backend: FakeBackend) -> None:
