@@ -2,7 +2,8 @@
 
 ``policy.pt`` holds the actor (and the critic that picks the lane), the feature set, the lane
 decision cadence and the acceleration scaling, so `agent-client drive --policy
-runs/NAME/policy.pt` needs nothing else.
+runs/NAME/policy.pt` needs nothing else. The driver is plain numpy: a process that only drives
+(an evaluation worker) never imports torch; reading and writing policy files does.
 """
 
 from __future__ import annotations
@@ -11,10 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap, FeatureMismatch
+from agent_client.rl.greedy import GreedyPolicy
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
-from agent_client.rl.policy import Policy
 from protocol.messages import ActionSchema, Observation
 
 
@@ -43,7 +43,7 @@ class PolicyDriver:
     name = "policy"
 
     def __init__(
-        self, policy: Policy, features: FeatureMap, scale: ActionScale, lanes: LaneChoice
+        self, policy: GreedyPolicy, features: FeatureMap, scale: ActionScale, lanes: LaneChoice
     ) -> None:
         self.policy = policy
         self.features = features
@@ -64,6 +64,8 @@ def save_policy(
 ) -> None:
     """Write the deployable part of an agent (`Agent.policy_state_dict`: no optimiser, no
     buffer) with what it needs to drive."""
+    from agent_client.rl.checkpoint import save_checkpoint  # torch: the driver itself needs none
+
     state: dict[str, Any] = {
         "policy": policy_state,
         "features": features.name,
@@ -76,6 +78,9 @@ def save_policy(
 
 def load_policy_driver(path: Path) -> PolicyDriver:
     """Read a policy file safely and wrap it as a driver."""
+    from agent_client.rl.checkpoint import load_checkpoint  # torch: the driver itself needs none
+    from agent_client.rl.policy import Policy
+
     state = load_checkpoint(path)
     low, high = state["acceleration_bounds"]
     every = int(state.get("lane_decision_every", 1))

@@ -4,7 +4,7 @@ Functional on purpose: the parameters are lists of tensors and the forward passe
 functions, so that a whole update step can be differentiated with `torch.func` and compiled as
 one graph (`agent_client.rl.td3`). The critics of an ensemble (TD3's twin) have their weights
 stacked and run as one batched matrix product. Acting reads the same weights as numpy views
-(`NumpyActor`, `NumpyCritic`), so the per-step path needs no torch call at all.
+(`numpy_views`, `agent_client.rl.greedy`), so the per-step path needs no torch call at all.
 
 Layout: a layer is (W, b) with W of shape (in, out) (stacked: (n, in, out), b (n, 1, out)), so
 that ``x @ W + b`` is the layer; ReLU between layers, tanh after the actor's last one.
@@ -83,38 +83,7 @@ def first_critic(params: Params) -> Params:
     return [p[:1] for p in params]
 
 
-class NumpyActor:
-    """The actor's forward pass in numpy on views of the torch weights (no copy, no torch call).
-
-    The views follow the torch tensors as the optimiser updates them in place.
-    """
-
-    def __init__(self, params: Params) -> None:
-        self.layers = [(w.detach().numpy(), b.detach().numpy()) for w, b in _pairs(params)]
-
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """(N, obs_dim) float32 -> (N,) normalised accelerations."""
-        h = obs
-        for w, b in self.layers[:-1]:
-            h = np.maximum(h @ w + b, 0.0)
-        w, b = self.layers[-1]
-        return np.tanh(h @ w + b)[:, 0].astype(np.float32, copy=False)
-
-
-class NumpyCritic:
-    """The first critic's forward pass in numpy (for the greedy lane choice while acting)."""
-
-    def __init__(self, params: Params) -> None:
-        self.layers = [(w.detach().numpy()[0], b.detach().numpy()[0]) for w, b in _pairs(params)]
-
-    def __call__(self, obs: np.ndarray, acceleration: np.ndarray) -> np.ndarray:
-        """(N, obs_dim), (N,) -> (N, n_lanes)."""
-        h = np.concatenate([obs, acceleration[:, None]], axis=1)
-        for w, b in self.layers[:-1]:
-            h = np.maximum(h @ w + b, 0.0)
-        w, b = self.layers[-1]
-        return h @ w + b
-
-
-def _pairs(params: Params) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    return [(params[i], params[i + 1]) for i in range(0, len(params), 2)]
+def numpy_views(params: Params) -> list[np.ndarray]:
+    """The tensors as numpy arrays sharing their memory: acting through them
+    (`agent_client.rl.greedy`) follows the optimiser's in-place updates without a copy."""
+    return [p.detach().numpy() for p in params]

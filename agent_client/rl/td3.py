@@ -31,18 +31,18 @@ import torch
 import torch.nn.functional as F
 
 from agent_client.errors import UsageError
+from agent_client.rl.greedy import NumpyActor, NumpyCritic, all_valid
 from agent_client.rl.lanes import choose_lanes
 from agent_client.rl.networks import (
-    NumpyActor,
-    NumpyCritic,
     Params,
     actor_forward,
     init_actor,
     init_critics,
+    numpy_views,
 )
 from agent_client.rl.noise import NOISE_KINDS, ActionNoise, make_noise
 from agent_client.rl.optim import AdamState
-from agent_client.rl.policy import POLICY_FORMAT, POLICY_VERSION, Policy, all_valid
+from agent_client.rl.policy import POLICY_FORMAT, POLICY_VERSION, Policy
 from agent_client.rl.replay import Batch, ReplayBuffer
 from agent_client.rl.update import METRICS, Hyper, LearnerState, Tensors, make_steps
 
@@ -214,8 +214,8 @@ class Agent:
             actor_average=[p.clone() for p in actor],
             critics_average=[p.clone() for p in critics],
         )
-        self._act_actor = NumpyActor(actor)
-        self._act_critic = NumpyCritic(critics)
+        self._act_actor = NumpyActor(numpy_views(actor))
+        self._act_critic = NumpyCritic(numpy_views(critics))
         self._steps = make_steps(_hyper(cfg), cfg.compile)
         # Exploration (lane epsilon) and target smoothing each have their own generator.
         self.rng = np.random.default_rng(int(seeds[1]))

@@ -46,6 +46,18 @@ class EvaluationJob:
     """Set when the evaluation ended early: the target it had failed for certain."""
 
 
+def certain_failure(
+    job: EvaluationJob, done: Sequence[EpisodeSummary], remaining: Sequence[int]
+) -> str | None:
+    """The target the finished episodes `done` have failed for certain, whatever the seed
+    indices in `remaining` give, if the job screens (`screen`, or `stop_on_collision`)."""
+    if job.screen is not None:
+        return job.screen.failed(done, remaining)
+    if job.stop_on_collision and any(s.collisions for s in done):
+        return "no_collisions"
+    return None
+
+
 @dataclass
 class _Running:
     seed_index: int
@@ -125,14 +137,8 @@ class Evaluator:
         return None
 
     def _failed(self, job: EvaluationJob) -> str | None:
-        """The target the finished episodes have failed for certain, if the job screens."""
-        done = list(self._done.values())
-        if job.screen is not None:
-            remaining = [i for i in range(len(job.seeds)) if i not in self._done]
-            return job.screen.failed(done, remaining)
-        if job.stop_on_collision and any(s.collisions for s in done):
-            return "no_collisions"
-        return None
+        remaining = [i for i in range(len(job.seeds)) if i not in self._done]
+        return certain_failure(job, list(self._done.values()), remaining)
 
     def _finish(self, job: EvaluationJob) -> tuple[EvaluationJob, list[EpisodeSummary]]:
         """The job's summaries in seed order; episodes still running are given up."""

@@ -15,14 +15,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 
 from agent_client.drivers.policy import ActionScale
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import ServerError, ServerUnavailable
 from agent_client.rl.features import FeatureMap
+from agent_client.rl.greedy import NumpyActor, NumpyCritic
 from agent_client.rl.lanes import LaneChoice, choose_lanes
-from agent_client.rl.networks import NumpyActor, NumpyCritic
 from agent_client.rl.noise import ActionNoise, make_noise
 from agent_client.rl.rewards import RewardFn
 from agent_client.training.collect import (
@@ -102,9 +101,9 @@ class Exploration:
 
     def load(self, policy_state: dict[str, Any]) -> None:
         """Take a new policy copy (`Agent.policy_state_dict()`: the actor, critic 1 for lanes)."""
-        self._actor = NumpyActor([torch.as_tensor(p).clone() for p in policy_state["actor"]])
+        self._actor = NumpyActor([np.array(p) for p in policy_state["actor"]])
         critic = policy_state.get("critic")
-        self._critic = NumpyCritic([torch.as_tensor(p).clone() for p in critic]) if critic else None
+        self._critic = NumpyCritic([np.array(p) for p in critic]) if critic else None
 
     def configure(self, settings: Settings) -> None:
         """Follow the learner's schedule: warm-up or policy, noise scale, lane epsilon."""

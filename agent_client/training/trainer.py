@@ -57,6 +57,7 @@ from agent_client.training.collect import (
     Slot,
 )
 from agent_client.training.config import TrainConfig
+from agent_client.training.eval_pool import EvaluationPool
 from agent_client.training.evaluator import EvaluationJob, Evaluator
 from agent_client.training.exploration import WarmupDriver, learning, noise_scale_at
 from agent_client.training.multi_collect import (
@@ -119,9 +120,18 @@ class Trainer:
         self.vec = RemoteVectorEnv(
             servers, config.scenario, reward=reward, timeout_s=timeout_s, **options
         )
+        self.eval_servers = list(eval_servers)
         self.eval_envs: list[RemoteEnv] = []
+        """The evaluation servers' connections, where evaluations run beside training."""
+        self.eval_pool: EvaluationPool | None = None
+        """Their workers, where evaluations run while training waits."""
         try:
-            for address in eval_servers:
+            if eval_servers and not config.eval_while_training:
+                self.eval_pool = EvaluationPool(
+                    eval_servers, config.scenario, config.reward, config.reward_params, options,
+                    timeout_s,
+                )  # fmt: skip
+            for address in eval_servers if self.eval_pool is None else ():
                 self.eval_envs.append(
                     RemoteEnv(
                         address,
@@ -190,7 +200,7 @@ class Trainer:
                 policy_state=self.agent.policy_state_dict,
                 global_step=lambda: self.progress.global_step,
                 lane_epsilon=lambda: self.agent.lane_epsilon, next_seed=self._next_seed,
-                retry_for_s=self.retry_for_s, eval_servers=len(self.eval_envs),
+                retry_for_s=self.retry_for_s, eval_servers=len(self.eval_servers),
             )  # fmt: skip
         else:
             self.collector = LocalCollector(
@@ -260,6 +270,8 @@ class Trainer:
         self.vec.close()
         for env in self.eval_envs:
             env.close()
+        if self.eval_pool is not None:
+            self.eval_pool.close()
 
     # ----------------------------------------------------------------------- the loop
 
@@ -275,11 +287,11 @@ class Trainer:
         if self.idm_eval is None and self.config.eval_every > 0:
             # Where the evaluations run: in lock-step, adding the training servers' slower
             # tcp:// replies made it ~1.5x slower than the direct:// evaluation servers alone.
-            envs = self.eval_envs or self.vec.envs
-            self.say(f"evaluating the IDM baseline on the evaluation seeds ({len(envs)} servers)")
+            servers = len(self.eval_servers or self.vec.envs)
+            self.say(f"evaluating the IDM baseline on the evaluation seeds ({servers} servers)")
             job = EvaluationJob("idm", self.idm, self._eval_seeds())
             started = self.profile.blocking_evaluation
-            summaries = self._resilient(lambda: self._run_inline(job, envs))
+            summaries = self._resilient(lambda: self._evaluate_blocking(job))
             self.profile.baseline_evaluation += self.profile.blocking_evaluation - started
             self._set_idm_baseline(summaries)
             self.collector.drop_episodes()
@@ -377,6 +389,8 @@ class Trainer:
                 self._drop_running()
                 for env in self._own_connections():
                     env.reconnect(self.retry_for_s)
+                if self.eval_pool is not None:
+                    self.eval_pool.reconnect(self.retry_for_s)
                 self.progress.reconnects += 1
                 self.say(f"reconnected to {', '.join(self.vec.addresses)}; new episodes start")
             except ServerError as exc:
@@ -515,9 +529,8 @@ class Trainer:
         if self.evaluator is not None:
             self.evaluator.start(job)
             return
-        envs = self.eval_envs or self.vec.envs
-        summaries = self._resilient(lambda: self._run_inline(job, envs))
-        if not self.eval_envs:
+        summaries = self._resilient(lambda: self._evaluate_blocking(job))
+        if not self.eval_servers:
             self.collector.drop_episodes()  # the evaluation used the training servers
         self._evaluation_done(job, summaries, log)
 
@@ -533,12 +546,14 @@ class Trainer:
         bounds = ceilings if self._one_lane and ceilings and len(ceilings) == seeds else None
         return FailureScreen(seeds, self.idm_eval["average_speed"], max_steps, bounds)
 
-    def _run_inline(
-        self, job: EvaluationJob, envs: Sequence[RemoteEnv] | None = None
-    ) -> list[EpisodeSummary]:
+    def _evaluate_blocking(self, job: EvaluationJob) -> list[EpisodeSummary]:
+        """Run `job` to its end while training waits: on the evaluation servers' workers, else
+        in lock-step on the evaluation or training servers."""
         started = time.perf_counter()
         try:
-            return Evaluator(envs or [self.env]).run(job)
+            if self.eval_pool is not None:
+                return self.eval_pool.run(job)
+            return Evaluator(self.eval_envs or self.vec.envs).run(job)
         finally:
             self.profile.blocking_evaluation += time.perf_counter() - started
 

@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from agent_client.rl.greedy import NumpyActor, NumpyCritic
 from agent_client.rl.networks import (
-    NumpyActor,
-    NumpyCritic,
     actor_forward,
     critics_forward,
     first_critic,
     init_actor,
     init_critics,
+    numpy_views,
 )
 from agent_client.rl.optim import AdamState, adam_, clip_grad_norm_
 
@@ -21,7 +21,8 @@ def test_numpy_acting_is_the_torch_forward_and_follows_updates() -> None:
     generator = torch.Generator().manual_seed(0)
     actor, critics = init_actor(5, (16, 16), generator), init_critics(5, 3, (16, 16), 2, generator)
     obs = torch.randn(7, 5, generator=generator)
-    numpy_actor, numpy_critic = NumpyActor(actor), NumpyCritic(critics)
+    numpy_actor = NumpyActor(numpy_views(actor))
+    numpy_critic = NumpyCritic(numpy_views(critics))
     acceleration = actor_forward(actor, obs)
     np.testing.assert_allclose(numpy_actor(obs.numpy()), acceleration[:, 0].numpy(), rtol=1e-5)
     q = critics_forward(first_critic(critics), obs, acceleration)[0]

@@ -1,0 +1,186 @@
+"""`EvaluationPool`: blocking evaluations by one worker process per server, against conforming
+in-process servers (fake backend) reached over real loopback sockets by real worker processes."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from agent_client.drivers.idm import IDMDriver, IDMParams
+from agent_client.drivers.policy import ActionScale, PolicyDriver, load_policy_driver, save_policy
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import ServerLost, ServerTimeout, ServerUnavailable
+from agent_client.evaluation.targets import FailureScreen
+from agent_client.rl.features import FeatureMap
+from agent_client.rl.lanes import LaneChoice
+from agent_client.rl.td3 import Agent, TD3Config
+from agent_client.training import eval_pool
+from agent_client.training.eval_pool import EvaluationPool
+from agent_client.training.eval_worker import driver_from_message, driver_message
+from agent_client.training.evaluator import EvaluationJob, Evaluator
+from protocol.messages import Observation, OptionValue
+from tests.agent_client.conformance.toys import ToyServer
+
+SEEDS = [7, 3, 11, 5, 9]
+RESET_OPTIONS: dict[str, OptionValue] = {"decision_interval": 0.1}
+
+
+@pytest.fixture
+def servers() -> Iterator[list[ToyServer]]:
+    with ToyServer() as first, ToyServer() as second:
+        yield [first, second]
+
+
+@pytest.fixture
+def pool(servers: list[ToyServer]) -> Iterator[EvaluationPool]:
+    opened = EvaluationPool([s.address for s in servers], "cf", "safe", {}, RESET_OPTIONS, 5.0)
+    try:
+        yield opened
+    finally:
+        opened.close()
+
+
+def lockstep(job: EvaluationJob) -> list[dict[str, object]]:
+    """The same job run by the learner's own `Evaluator` on two servers of its own (the
+    reference; the pool's workers hold theirs)."""
+    with ToyServer() as first, ToyServer() as second:
+        envs = [RemoteEnv(s.address, "cf", reward="safe", timeout_s=5.0, decision_interval=0.1)
+                for s in (first, second)]  # fmt: skip
+        try:
+            return [summary.to_dict() for summary in Evaluator(envs).run(job)]
+        finally:
+            for env in envs:
+                env.close()
+
+
+def test_the_workers_drive_the_same_episodes_as_the_learner_would(pool: EvaluationPool) -> None:
+    idm = IDMDriver(IDMParams(T=1.2))
+    summaries = pool.run(EvaluationJob("idm", idm, SEEDS))
+    assert [s.seed for s in summaries] == SEEDS
+    assert [s.episode for s in summaries] == list(range(len(SEEDS)))
+    assert [s.to_dict() for s in summaries] == lockstep(EvaluationJob("idm", idm, SEEDS))
+    # Another driver's parameters reach the workers: other episodes.
+    other = pool.run(EvaluationJob("idm", IDMDriver(IDMParams(T=2.5)), SEEDS))
+    assert [s.average_speed for s in other] != [s.average_speed for s in summaries]
+
+
+@pytest.mark.parametrize("lane_change", [False, True])
+def test_a_policy_drives_the_workers_as_it_drives_the_learner(
+    pool: EvaluationPool, tmp_path: Path, lane_change: bool
+) -> None:
+    every = 10 if lane_change else 1
+    features = FeatureMap("lc" if lane_change else "cf", lane_phase_every=every)
+    lanes = LaneChoice(3 if lane_change else 1, every, gap_rule=lane_change)
+    agent = Agent(features.dim, lanes.n_choices, TD3Config(compile=False), seed=5)
+    save_policy(tmp_path / "p.pt", agent.policy_state_dict(), features, ActionScale(-6, 3), lanes)
+    driver = load_policy_driver(tmp_path / "p.pt")
+    message = driver_message(driver)
+    again = driver_from_message(message)
+    assert isinstance(again, PolicyDriver)
+    assert (again.features.name, again.features.dim, again.lanes, again.scale) == (
+        features.name, features.dim, lanes, ActionScale(-6, 3)
+    )  # fmt: skip
+    summaries = pool.run(EvaluationJob("policy", driver, SEEDS[:3]))
+    assert [s.to_dict() for s in summaries] == lockstep(EvaluationJob("policy", driver, SEEDS[:3]))
+
+
+def test_a_driver_a_worker_cannot_rebuild_is_refused_before_anything_runs(
+    pool: EvaluationPool,
+) -> None:
+    class Idle:
+        def act(self, obs: Observation) -> tuple[float, int]:
+            return 0.0, 0
+
+    with pytest.raises(ValueError, match="IDM or a policy"):
+        pool.run(EvaluationJob("idle", Idle(), SEEDS))
+    assert len(pool.run(EvaluationJob("idm", IDMDriver(), SEEDS[:1]))) == 1
+
+
+def test_a_worker_never_imports_torch() -> None:
+    """What it drives with is plain numpy: a worker starts in a fraction of a second."""
+    code = "import sys, agent_client.training.eval_worker; print('torch' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60, check=True)  # fmt: skip
+    assert result.stdout.strip() == "False"
+
+
+def test_a_screened_evaluation_stops_at_the_first_seeds_that_have_failed_for_certain(
+    pool: EvaluationPool,
+) -> None:
+    everything = pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    speed = sum(s.average_speed for s in everything) / len(SEEDS)
+    bounds = [s.average_speed for s in everything]
+    hopeless = FailureScreen(len(SEEDS), 1.05 * speed, speed_bounds=bounds)
+    # In seed order: the fewest first seeds that fail whatever the others give.
+    first = next(k for k in range(1, len(SEEDS)) if hopeless.failed(everything[:k], range(k, 5)))
+    for _ in range(3):  # whichever worker finishes first, the same verdict and episodes
+        job = EvaluationJob("idm", IDMDriver(), SEEDS, screen=hopeless)
+        stopped = pool.run(job)
+        assert job.stopped == "as_fast_as_idm"
+        assert [s.to_dict() for s in stopped] == [s.to_dict() for s in everything[:first]]
+    # The workers are ready for the next job at once: nothing of the stopped one is left over.
+    assert [s.to_dict() for s in pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))] == [
+        s.to_dict() for s in everything
+    ]
+
+
+def test_a_server_that_is_not_there_is_reported_as_unavailable_and_no_worker_is_left() -> None:
+    with socket.socket() as probe:  # a free port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+    started: list[int] = []
+    original = eval_pool._WorkerProcess.__init__
+
+    def remember(self: eval_pool._WorkerProcess, address: str) -> None:
+        original(self, address)
+        started.append(self.process.pid)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(eval_pool._WorkerProcess, "__init__", remember)
+        with pytest.raises(ServerUnavailable, match=address.removeprefix("tcp://")):
+            EvaluationPool([address], "cf", "safe", {}, RESET_OPTIONS, 0.5)
+    assert len(started) == 1
+    with pytest.raises(ProcessLookupError):
+        os.kill(started[0], 0)  # reaped
+
+
+def test_a_worker_that_died_is_reported_as_lost_and_started_again_on_reconnect(
+    pool: EvaluationPool,
+) -> None:
+    before = pool.run(EvaluationJob("idm", IDMDriver(), SEEDS[:2]))
+    victim = pool.workers[1].process
+    victim.kill()
+    victim.wait(timeout=10)
+    with pytest.raises(ServerLost, match="exited"):
+        pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    pool.reconnect(5.0)
+    assert pool.workers[1].process.pid != victim.pid
+    after = pool.run(EvaluationJob("idm", IDMDriver(), SEEDS[:2]))
+    assert [s.to_dict() for s in after] == [s.to_dict() for s in before]
+
+
+def test_a_silent_worker_times_out_and_is_replaced(
+    pool: EvaluationPool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(eval_pool, "STOP_GRACE_S", 0.5)
+    pool.silence_s = 1.0
+    frozen = pool.workers[0].process
+    os.kill(frozen.pid, signal.SIGSTOP)
+    try:
+        with pytest.raises(ServerTimeout, match="said anything"):
+            pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    finally:
+        with contextlib.suppress(ProcessLookupError):  # killed and reaped: nothing to resume
+            os.kill(frozen.pid, signal.SIGCONT)
+    assert pool.workers[0].process.pid != frozen.pid  # given up after the grace period
+    assert frozen.wait(timeout=10) is not None
+    pool.reconnect(5.0)
+    assert len(pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))) == len(SEEDS)
