@@ -22,7 +22,8 @@ out=${OUT:-runs/main-$(date +%Y%m%d-%H%M%S)}
 episodes=${EVAL_EPISODES:-20}
 mkdir -p "$out"
 # Training steps on two tcp:// servers; greedy evaluations block training and run on two
-# direct:// servers of their own, about twice as fast per step here (docs/learner.md).
+# direct:// servers of their own, about twice as fast per step here, one worker process
+# driving each (docs/learner.md, "Evaluations during training").
 start_servers() {  # start_servers NAME SCHEME: two SUMO servers, their addresses in NAME.out
     sim-server --bind "$2://127.0.0.1:0" --workers 2 --backend sumo \
         >"$out/$1.out" 2>"$out/$1.log" &

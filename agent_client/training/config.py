@@ -106,9 +106,9 @@ class TrainConfig:
     policy that still crashes with exploration noise is not worth `eval_episodes` greedy ones); 0
     evaluates every `eval_every` episodes regardless."""
     eval_screen: bool = True
-    """End an evaluation as soon as it has failed a target for certain, whatever its remaining
-    episodes give (`agent_client.evaluation.targets.FailureScreen`); False: only at its first
-    collision. A pass is unchanged: every episode, every target."""
+    """End an evaluation as soon as its first seeds (in order) have failed a target for
+    certain, whatever the others give (`agent_client.evaluation.targets.FailureScreen`); False:
+    only at a collision. A pass is unchanged: every episode, every target."""
     eval_budget: float | None = 0.4
     """Evaluation env steps per training env step after a failed evaluation: the next waits
     until training has driven the failed one's steps / `eval_budget` more (an evaluation step

@@ -4,18 +4,17 @@ While training waits for an evaluation, one client driving two servers in lock-s
 processes busy on two cores, and the client's share of every step (choosing the action,
 checking the reply, scoring it) is the slowest link. With a worker process per server
 (`agent_client.training.eval_worker`) each pair of client and server steps on its own, and the
-same episodes run ~1.4x as fast on the 2-core VM (docs/learner.md, "Evaluations during
+same episodes run 1.4-1.5x as fast on the 2-core VM (docs/learner.md, "Evaluations during
 training").
 
-Seeds are handed out in order to whichever worker is free. The failure screen judges the
-finished episodes in seed order (the first k seeds once all of them have finished), not in the
-order the workers happen to finish them, so the same policy gets the same verdict, episodes and
-steps whatever the timing: an evaluation stops at the first k whose figures have failed a target
-whatever the other seeds give, and the episodes beyond k that had finished are dropped.
+Seeds are handed out in order to whichever worker is free, and the failure screen judges the
+finished episodes in seed order (`judge_in_order`), as the lock-step evaluator does: the same
+policy gets the same verdict, episodes and steps whichever worker finishes first.
 """
 
 from __future__ import annotations
 
+import itertools
 import select
 import subprocess
 import sys
@@ -25,20 +24,20 @@ from collections.abc import Sequence
 from typing import Any
 
 from agent_client.defaults import RESET_TIMEOUT_S, STEP_TIMEOUT_S
-from agent_client.errors import ServerLost, ServerTimeout
+from agent_client.errors import BridgeError, ServerLost, ServerTimeout, ServerUnavailable
 from agent_client.evaluation.metrics import EpisodeSummary
 from agent_client.training.eval_worker import ALIVE_EVERY_S, Pipe, driver_message, raise_error
-from agent_client.training.evaluator import EvaluationJob, certain_failure
+from agent_client.training.evaluator import EvaluationJob, judge_in_order
 from protocol.messages import OptionValue
 
 STOP_GRACE_S = 10.0
-"""How long a worker may take to stop its episode and say so before it is given up."""
+"""How long a worker may take to stop its episode and say so before it is replaced."""
 
 
 class _WorkerProcess:
-    """The learner's handle on one worker: its process, its pipe, what it is running."""
+    """The learner's handle on one worker: its process, its pipe, what it is doing."""
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, write_timeout_s: float) -> None:
         self.address = address
         self.process = subprocess.Popen(
             [sys.executable, "-m", "agent_client.training.eval_worker"],
@@ -50,47 +49,85 @@ class _WorkerProcess:
             process_group=0,
         )
         assert self.process.stdin is not None and self.process.stdout is not None
-        self.pipe = Pipe(self.process.stdout.fileno(), self.process.stdin.fileno())
+        self.pipe = Pipe(self.process.stdout.fileno(), self.process.stdin.fileno(), write_timeout_s)
+        self._ids = itertools.count(1)
+        self.awaiting: int | None = None
+        """The id of the request whose answer is due (None: nothing asked)."""
         self.running: int | None = None
         """The seed index of the episode it drives, None when idle."""
+        self.last_heard = time.monotonic()
+        self.closed = False
 
     @property
     def where(self) -> str:
         return f"evaluation worker for {self.address}"
 
+    def request(self, message: dict[str, Any]) -> None:
+        """Send a request; its answer is the one due next."""
+        self.awaiting = next(self._ids)
+        self.last_heard = time.monotonic()
+        self.send({**message, "id": self.awaiting})
+
     def send(self, message: dict[str, Any]) -> None:
-        """Send `message`; `ServerLost` if the process is gone."""
+        """Send `message`; `ServerLost` if the process is gone, `ServerTimeout` if it reads
+        nothing (a stopped process)."""
+        if self.closed:
+            raise ServerLost(f"the {self.where} was closed")
         try:
             self.pipe.send(message)
+        except TimeoutError as exc:
+            raise ServerTimeout(f"the {self.where} reads nothing: {exc}") from None
         except OSError:  # a broken pipe: it died
             raise self._lost() from None
 
+    def answer(self, message: dict[str, Any] | None) -> dict[str, Any] | None:
+        """`message` if it answers the request due (the error it reports raised); None for
+        ``alive`` and for what is left over from an earlier request."""
+        if message is None or message.get("id") != self.awaiting:
+            return None
+        self.last_heard = time.monotonic()
+        if message.get("op") == "alive":
+            return None
+        self.awaiting = None
+        if message.get("op") == "error":
+            self.running = None
+            raise_error(message, self.where)
+        return message
+
+    def wait_answer(self, timeout_s: float) -> dict[str, Any]:
+        """The answer to the request due; `ServerTimeout` after `timeout_s` without a word."""
+        while True:
+            quiet = time.monotonic() - self.last_heard
+            message = self.receive(max(0.0, timeout_s - quiet))
+            if message is None and time.monotonic() - self.last_heard >= timeout_s:
+                raise ServerTimeout(f"the {self.where} said nothing in {timeout_s:g} s")
+            answer = self.answer(message)
+            if answer is not None:
+                return answer
+
     def receive(self, timeout_s: float) -> dict[str, Any] | None:
         """Its next message (None after `timeout_s`); `ServerLost` if the process is gone."""
+        if self.closed:
+            raise ServerLost(f"the {self.where} was closed")
         try:
             return self.pipe.receive(timeout_s)
         except EOFError:
             raise self._lost() from None
 
     def _lost(self) -> ServerLost:
-        self.running = None
-        return ServerLost(f"the {self.where} exited (status {self.process.wait(timeout=10)})")
-
-    def expect_ready(self, timeout_s: float) -> None:
-        """Wait for ``ready``; the worker's error raised as the client's own exception."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            message = self.receive(max(0.0, deadline - time.monotonic()))
-            if message is None:
-                raise ServerTimeout(f"the {self.where} was not ready within {timeout_s:g} s")
-            if message.get("op") == "error":
-                raise_error(message, self.where)
-            if message.get("op") == "ready":
-                return
+        """The error for a worker whose pipe broke (killed if it is somehow still running)."""
+        self.running = self.awaiting = None
+        try:
+            status = self.process.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            status = self.process.wait(timeout=10)
+        return ServerLost(f"the {self.where} exited (status {status})")
 
     def close(self, kill: bool = False) -> None:
-        """Close its stdin (it exits) and reap it; killed at once with `kill`, or if it does
+        """Close its pipes (it exits) and reap it; killed at once with `kill`, or if it does
         not exit in time."""
+        self.closed = True
         process = self.process
         for pipe in (process.stdin, process.stdout):
             if pipe is not None:
@@ -128,68 +165,65 @@ class EvaluationPool:
             "timeout_s": timeout_s,
         }
         self.silence_s = max(timeout_s, RESET_TIMEOUT_S) + 10 * ALIVE_EVERY_S
-        """A worker quiet for longer is hung: its own waits on the server end sooner."""
+        """A worker silent for longer is hung: its own waits on its server end sooner, and at
+        work it says it is alive every `ALIVE_EVERY_S`."""
         self.workers: list[_WorkerProcess] = []
-        self._jobs = 0
         try:
             for address in addresses:
                 self.workers.append(self._start(address))
             for worker in self.workers:
-                worker.expect_ready(self.silence_s)
+                worker.wait_answer(self.silence_s)
         except BaseException:
             self.close()
             raise
-
-    @property
-    def addresses(self) -> list[str]:
-        return [worker.address for worker in self.workers]
 
     def run(self, job: EvaluationJob) -> list[EpisodeSummary]:
         """Drive `job` to its end (`job.driver` an `IDMDriver` or a `PolicyDriver`). The
         summaries in seed order; `job.stopped` set if it ended early."""
         driver = driver_message(job.driver)
+        job.stopped = None
         if not job.seeds:
             return []
-        self._jobs += 1
-        job_id = self._jobs
-        for worker in self.workers:
-            worker.send(driver)
         queue = deque(enumerate(job.seeds))
         done: dict[int, EpisodeSummary] = {}
-        judged = 0  # the seeds 0..judged-1 have finished and passed the screen
+        judged = 0
         try:
+            for worker in self.workers:
+                worker.request(driver)
+            for worker in self.workers:
+                worker.wait_answer(self.silence_s)
             while True:
                 for worker in self.workers:
                     if worker.running is None and queue:
                         index, seed = queue.popleft()
-                        worker.send({"op": "episode", "job": job_id, "index": index,
-                                          "seed": seed})  # fmt: skip
+                        worker.request({"op": "episode", "index": index, "seed": seed})
                         worker.running = index
-                worker, message = self._next_message()
-                if message.get("job") != job_id or message.get("op") != "summary":
-                    continue
+                worker, message = self._next_answer()
                 worker.running = None
+                if message.get("op") != "summary":
+                    continue  # "stopped": only after a stop, which `run` sends last
                 done[int(message["index"])] = EpisodeSummary(**message["summary"])
-                while judged < len(job.seeds) and judged in done:
-                    judged += 1
-                    finished = [done[i] for i in range(judged)]
-                    if judged < len(job.seeds):
-                        job.stopped = certain_failure(job, finished, range(judged, len(job.seeds)))
-                    if job.stopped is not None or judged == len(job.seeds):
-                        return finished
+                judged, job.stopped = judge_in_order(job, done, judged)
+                if job.stopped is not None or judged == len(job.seeds):
+                    return [done[i] for i in range(judged)]
         finally:
             self._stop_running()
 
     def reconnect(self, timeout_s: float) -> None:
-        """After `ServerUnavailable`: each worker connects afresh (waiting up to `timeout_s`
-        for its server); a worker that died or hung is started again."""
+        """After `ServerUnavailable`: each worker connects afresh, waiting up to `timeout_s`
+        for its server; a worker that died, hung or was busy is replaced."""
         for index, worker in enumerate(self.workers):
-            if worker.process.poll() is None and worker.running is None:
-                worker.send({"op": "reconnect", "timeout_s": timeout_s})
-            else:
+            if worker.closed or worker.process.poll() is not None or worker.awaiting is not None:
                 worker.close(kill=True)
-                worker = self.workers[index] = self._start(worker.address, timeout_s)
-            worker.expect_ready(timeout_s + self.silence_s)
+                self.workers[index] = self._start(worker.address, wait_s=timeout_s)
+            else:
+                worker.request({"op": "reconnect", "timeout_s": timeout_s})
+        for worker in self.workers:
+            try:
+                worker.wait_answer(timeout_s + self.silence_s)
+            except ServerTimeout:
+                worker.close(kill=True)  # hung: the next reconnect starts another
+                raise
 
     def close(self) -> None:
         """Stop every worker (never blocks for long)."""
@@ -200,57 +234,70 @@ class EvaluationPool:
     # ----------------------------------------------------------------------- internals
 
     def _start(self, address: str, wait_s: float = 0.0) -> _WorkerProcess:
-        """A new worker, connecting to `address` (waiting up to `wait_s` for it to be up)."""
-        worker = _WorkerProcess(address)
-        worker.send({**self._connect, "address": address, "wait_s": wait_s})
+        """A new worker, connecting to `address` (waiting up to `wait_s` for it to be up);
+        its ``ready`` is the answer due."""
+        worker = _WorkerProcess(address, write_timeout_s=self.silence_s)
+        worker.request({**self._connect, "address": address, "wait_s": wait_s})
         return worker
 
-    def _next_message(self) -> tuple[_WorkerProcess, dict[str, Any]]:
-        """The next message of a busy worker (``alive`` ones skipped); its error raised as the
-        client's own exception; `ServerTimeout` if none has spoken for `silence_s`."""
+    def _next_answer(self) -> tuple[_WorkerProcess, dict[str, Any]]:
+        """The next answer of a busy worker, its error raised as the client's own exception;
+        `ServerTimeout` for a worker silent for `silence_s`."""
         busy = [worker for worker in self.workers if worker.running is not None]
-        deadline = time.monotonic() + self.silence_s
+        if not busy:
+            raise ServerLost("no evaluation worker is driving an episode")
         while True:
             ready = [worker for worker in busy if worker.pipe.has_message()]
             if not ready:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                now = time.monotonic()
+                silent = [w for w in busy if now - w.last_heard >= self.silence_s]
+                if silent:
                     raise ServerTimeout(
-                        f"no evaluation worker said anything in {self.silence_s:g} s "
-                        f"({', '.join(worker.address for worker in busy)})"
+                        f"the {silent[0].where} said nothing in {self.silence_s:g} s"
                     )
+                remaining = min(w.last_heard for w in busy) + self.silence_s - now
                 fds = {worker.pipe.read_fd: worker for worker in busy}
                 readable, _, _ = select.select(list(fds), [], [], remaining)
                 ready = [fds[fd] for fd in readable]
             for worker in ready:
-                message = worker.receive(0.0)
-                if message is None or message.get("op") == "alive":
-                    deadline = time.monotonic() + self.silence_s
-                    continue
-                if message.get("op") == "error":
-                    worker.running = None
-                    raise_error(message, worker.where)
-                return worker, message
+                answer = worker.answer(worker.receive(0.0))
+                if answer is not None:
+                    return worker, answer
 
     def _stop_running(self) -> None:
-        """Stop the episodes still running and read their last word (a summary or ``stopped``
+        """Stop the episodes still running and read their answers (a summary or ``stopped``
         that crossed the stop, or an error), so the next job starts on quiet pipes. A worker
-        that does not answer in `STOP_GRACE_S` is started again."""
+        that does not answer within `STOP_GRACE_S` is replaced; one that cannot be is left
+        closed (`reconnect` starts another). Never raises: the job's own outcome stands."""
+        stopping = []
         for worker in self.workers:
-            if worker.running is not None:
-                try:
-                    worker.send({"op": "stop"})
-                except ServerLost:  # died meanwhile: `reconnect` starts it again
-                    continue
-        for index, worker in enumerate(self.workers):
-            deadline = time.monotonic() + STOP_GRACE_S
+            if worker.running is None or worker.closed:
+                continue
             try:
-                while worker.running is not None:
-                    message = worker.receive(max(0.0, deadline - time.monotonic()))
-                    if message is None:
-                        raise ServerTimeout(f"the {worker.where} did not stop")
-                    if message.get("op") in ("summary", "stopped", "error"):
-                        worker.running = None
-            except (ServerLost, ServerTimeout):
-                worker.close(kill=True)
-                self.workers[index] = self._start(worker.address)
+                worker.send({"op": "stop"})
+                stopping.append(worker)
+            except ServerUnavailable:  # died or stopped meanwhile: replaced below
+                stopping.append(worker)
+        for worker in stopping:
+            try:
+                worker.wait_answer(STOP_GRACE_S)
+            except BridgeError:  # an error answers the request too; silence does not
+                if worker.awaiting is not None:
+                    self._replace(worker)
+            finally:
+                worker.running = None
+
+    def _replace(self, worker: _WorkerProcess) -> None:
+        """Kill `worker` and start another on its server (left closed if that fails)."""
+        worker.close(kill=True)
+        index = self.workers.index(worker)
+        try:
+            replacement = self._start(worker.address, wait_s=STOP_GRACE_S)
+        except OSError:  # no process: the next job's ServerLost tells the learner
+            return
+        try:
+            replacement.wait_answer(STOP_GRACE_S + self.silence_s)
+        except BridgeError:
+            replacement.close(kill=True)
+            return
+        self.workers[index] = replacement

@@ -4,15 +4,18 @@
 the direct transport's frames (a 4-byte length, then a msgpack map; no pickle). It connects to
 one evaluation server, then drives the episodes it is given one at a time with IDM or a policy
 (its weights come in the message: the worker never imports torch), and answers each with the
-episode's summary. While an episode runs it looks for a stop every `STOP_POLL_STEPS` steps and
-says it is alive every `ALIVE_EVERY_S`, so the learner can end an evaluation that has failed
-at once and tell a hung worker from a long episode.
+episode's summary. While an episode runs it says it is alive every `ALIVE_EVERY_S` and looks
+for a stop every `STOP_POLL_STEPS` steps, so the learner can tell a hung worker from a long
+episode and end an evaluation that has failed at once.
 
-Messages (each a map with an ``op``), learner to worker: ``connect`` (the server, the scenario,
-the reward and the reset options), ``driver`` (IDM's parameters, or a policy's weights),
-``episode`` (an index and a seed), ``stop``, ``reconnect``; worker to learner: ``ready``,
-``summary``, ``stopped``, ``alive``, ``error`` (a `kind` the learner raises again as the
-client's own exception).
+Messages are maps with an ``op``. The learner's requests carry an ``id``: ``connect`` (the
+server, the scenario, the reward and the reset options), ``reconnect``, ``driver`` (IDM's
+parameters, or a policy's weights) and ``episode`` (an index and a seed); ``stop`` has none.
+Every message the worker sends while it handles a request echoes that request's ``id``:
+``alive`` while it works, then ``ready`` (after ``connect``, ``reconnect`` and ``driver``),
+``summary`` or ``stopped`` (after ``episode``), or ``error`` (a `kind` the learner raises
+again as the client's own exception). The learner reads only the answer to the request it
+waits for, so nothing left over from an earlier one is ever taken for it.
 """
 
 from __future__ import annotations
@@ -28,12 +31,15 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from agent_client.drivers.episode import Driver, Episode
+from agent_client.drivers.episode import Driver, run_episode
 from agent_client.drivers.idm import IDMDriver, IDMParams
 from agent_client.drivers.policy import ActionScale, PolicyDriver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import (
     AuthenticationFailed,
+    BridgeError,
+    FeatureMismatch,
+    InsertionFailed,
     MalformedReply,
     ServerError,
     ServerLost,
@@ -46,46 +52,64 @@ from agent_client.rl.features import FeatureMap
 from agent_client.rl.greedy import GreedyPolicy
 from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.rewards import make_reward
+from protocol.messages import Observation
 from protocol.transport.direct import FrameReader, frame
 
 STOP_POLL_STEPS = 16
 """How often (in steps) a running episode looks for a stop from the learner."""
 ALIVE_EVERY_S = 1.0
-"""How often a worker in a long episode tells the learner it is alive."""
+"""How often a worker at work tells the learner it is alive."""
 CONNECT_RETRY_S = 0.2
-"""Pause between connection attempts to a server that is not back yet (``wait_s``)."""
+"""Pause between connection attempts to a server that is not (yet) back (``wait_s``)."""
 MAX_MESSAGE_BYTES = 1 << 24
+"""The largest message either end reads (a policy's weights travel in one)."""
 
-ERROR_KINDS: dict[str, type[Exception]] = {
+
+class EvaluationWorkerFailed(BridgeError):
+    """A worker failed in a way that is not the server's (a bug, a message it cannot read)."""
+
+
+ERROR_KINDS: dict[str, type[BridgeError]] = {
     "timeout": ServerTimeout,
     "lost": ServerLost,
+    "unavailable": ServerUnavailable,
     "authentication": AuthenticationFailed,
     "malformed": MalformedReply,
     "usage": UsageError,
+    "features": FeatureMismatch,
 }
-"""The client's exceptions a worker reports by name (`ServerError` carries its code too)."""
-
-
-class EvaluationWorkerFailed(RuntimeError):
-    """A worker failed in a way that is not the server's (a bug, a bad policy file)."""
-
+"""The client's exceptions a worker reports by name (`ServerError` and `InsertionFailed`
+carry their fields too); anything else comes back as `EvaluationWorkerFailed`."""
 
 _encoder = msgspec.msgpack.Encoder()
 _decoder = msgspec.msgpack.Decoder(dict[str, Any])
 
 
 class Pipe:
-    """Messages over a pair of descriptors: a blocking writer and a reader with deadlines."""
+    """Messages over a pair of descriptors, read with deadlines; written with one if
+    `write_timeout_s` is given (the learner's end: a stopped worker must not block it)."""
 
-    def __init__(self, read_fd: int, write_fd: int) -> None:
+    def __init__(self, read_fd: int, write_fd: int, write_timeout_s: float | None = None) -> None:
         self.read_fd = read_fd
         self.write_fd = write_fd
+        self.write_timeout_s = write_timeout_s
+        if write_timeout_s is not None:
+            os.set_blocking(write_fd, False)
         self._reader = FrameReader(max_bytes=MAX_MESSAGE_BYTES)
         self._frames: list[bytes] = []
 
     def send(self, message: dict[str, Any]) -> None:
+        """Write `message` whole; `TimeoutError` if the other end took none of it in time,
+        `OSError` (a broken pipe) if it is gone."""
         data = memoryview(frame(_encoder.encode(message)))
+        timeout = self.write_timeout_s
+        deadline = None if timeout is None else time.monotonic() + timeout
         while data:
+            if deadline is not None:
+                remaining = deadline - time.monotonic()
+                _, writable, _ = select.select([], [self.write_fd], [], max(0.0, remaining))
+                if not writable:
+                    raise TimeoutError(f"the other end read nothing in {timeout:g} s")
             data = data[os.write(self.write_fd, data) :]
 
     def receive(self, timeout_s: float | None) -> dict[str, Any] | None:
@@ -112,7 +136,12 @@ def error_message(exc: Exception) -> dict[str, Any]:
     """An exception as an ``error`` message (`raise_error` raises it again in the learner)."""
     if isinstance(exc, ServerError):
         return {"op": "error", "kind": "server", "code": exc.code, "message": exc.message}
-    kind = next((k for k, cls in ERROR_KINDS.items() if isinstance(exc, cls)), "other")
+    if isinstance(exc, InsertionFailed):
+        return {"op": "error", "kind": "insertion", "scenario": exc.scenario, "seeds": exc.seeds,
+                "message": exc.message}  # fmt: skip
+    kind = next((k for k, cls in ERROR_KINDS.items() if type(exc) is cls), None)
+    if kind is None:
+        kind = next((k for k, cls in ERROR_KINDS.items() if isinstance(exc, cls)), "other")
     text = str(exc) if kind != "other" else f"{type(exc).__name__}: {exc}"
     return {"op": "error", "kind": kind, "message": text}
 
@@ -120,39 +149,57 @@ def error_message(exc: Exception) -> dict[str, Any]:
 def raise_error(message: dict[str, Any], where: str) -> None:
     """Raise the exception an ``error`` message describes, naming the worker's server."""
     text = f"{where}: {message.get('message', '')}"
-    if message.get("kind") == "server":
+    kind = message.get("kind")
+    if kind == "server":
         raise ServerError(str(message.get("code", "")), text)
-    raise ERROR_KINDS.get(str(message.get("kind")), EvaluationWorkerFailed)(text)
+    if kind == "insertion":
+        seeds = [int(seed) for seed in message.get("seeds", [])]
+        raise InsertionFailed(str(message.get("scenario", "")), seeds, text)
+    raise ERROR_KINDS.get(str(kind), EvaluationWorkerFailed)(text)
 
 
 # ----------------------------------------------------------------------- the worker
 
 
+class _Stopped(Exception):
+    """The learner stopped the episode under way."""
+
+
 class _Worker:
-    """The worker's state: its connection and who drives."""
+    """The worker's state: its connection, who drives, the request it answers."""
 
     def __init__(self, pipe: Pipe) -> None:
         self.pipe = pipe
         self.env: RemoteEnv | None = None
         self.driver: Driver | None = None
+        self.request_id: int | None = None
+        """The ``id`` of the request being handled: every message sent echoes it."""
+        self._connection: dict[str, Any] | None = None
+        """The last ``connect`` message: what a reconnect without a connection repeats."""
         self._last_sent = time.monotonic()
 
     def handle(self, message: dict[str, Any]) -> None:
         op = message.get("op")
+        if op == "stop":  # for an episode that had already ended: nothing to stop
+            return
+        self.request_id = message.get("id")
         if op == "connect":
             self.connect(message)
-        elif op == "driver":
-            self.driver = driver_from_message(message)
-        elif op == "episode":
-            self.episode(int(message["job"]), int(message["index"]), int(message["seed"]))
         elif op == "reconnect":
-            self._env().reconnect(float(message["timeout_s"]))
+            self.reconnect(float(message["timeout_s"]))
+        elif op == "driver":
+            self.driver = None  # a driver that cannot be built never leaves the last in place
+            self.driver = driver_from_message(message)
             self.send({"op": "ready"})
-        elif op != "stop":  # a stop for an episode that had already ended: nothing to stop
+        elif op == "episode":
+            self.episode(int(message["index"]), int(message["seed"]))
+        else:
             raise EvaluationWorkerFailed(f"unknown message {op!r}")
 
     def connect(self, message: dict[str, Any]) -> None:
-        """Connect to the server with the learner's scenario, reward and reset options."""
+        """Connect with the learner's scenario, reward and reset options; a server not up yet
+        (or still holding a client that is gone) is retried for ``wait_s``."""
+        self._connection = message
         if self.env is not None:
             self.env.close()
             self.env = None
@@ -166,43 +213,58 @@ class _Worker:
                     timeout_s=float(message["timeout_s"]),
                     **message["options"],
                 )
-            except ServerUnavailable:
+            except (ServerUnavailable, ServerError) as exc:
+                busy = isinstance(exc, ServerError) and exc.code == "busy"
+                if not (busy or isinstance(exc, ServerUnavailable)):
+                    raise
                 if time.monotonic() >= deadline:
                     raise
+                self.alive()
                 time.sleep(CONNECT_RETRY_S)
         self.send({"op": "ready"})
 
-    def _env(self) -> RemoteEnv:
+    def reconnect(self, timeout_s: float) -> None:
+        """Connect afresh, waiting up to `timeout_s` for the server (also after a first
+        connection that failed)."""
         if self.env is None:
-            raise EvaluationWorkerFailed("not connected: connect first")
-        return self.env
+            if self._connection is None:
+                raise EvaluationWorkerFailed("not connected: connect first")
+            self.connect({**self._connection, "wait_s": timeout_s})
+            return
+        self.env.reconnect(timeout_s)
+        self.send({"op": "ready"})
 
-    def episode(self, job: int, index: int, seed: int) -> None:
+    def episode(self, index: int, seed: int) -> None:
         """Drive one episode; its summary, or ``stopped`` if the learner stopped it."""
-        env, driver = self._env(), self.driver
-        if driver is None:
-            raise EvaluationWorkerFailed("no driver: send one first")
-        env.send_reset(seed=seed)
-        obs = env.receive_reset_observation()
-        episode = Episode(episode=index, seed=seed, step_length=env.step_length)
-        episode.add(obs)
+        env, driver = self.env, self.driver
+        if env is None or driver is None:
+            raise EvaluationWorkerFailed("no connection or no driver: connect and send one first")
         steps = 0
-        while not (obs.terminated or obs.truncated):
-            acceleration, lane_change = driver.act(obs)
-            env.send_command(acceleration, lane_change)
-            obs, reward = env.receive_observation()
-            episode.add(obs, reward)
-            steps += 1
-            if steps % STOP_POLL_STEPS == 0 and self.stop_requested():
-                self.send({"op": "stopped", "job": job, "index": index})
-                return
-        summary = episode_summary(episode).to_dict()
-        self.send({"op": "summary", "job": job, "index": index, "summary": summary})
 
-    def stop_requested(self) -> bool:
-        """Whether the learner sent a stop; says it is alive when it has been quiet long."""
+        def between_steps(
+            before: Observation, action: object, reward: float, after: Observation
+        ) -> None:
+            nonlocal steps
+            steps += 1
+            self.alive()
+            if steps % STOP_POLL_STEPS == 0 and self.stop_requested():
+                raise _Stopped
+
+        try:
+            episode = run_episode(env, driver, seed, index, on_step=between_steps)
+        except _Stopped:
+            self.send({"op": "stopped", "index": index})
+            return
+        summary = episode_summary(episode).to_dict()
+        self.send({"op": "summary", "index": index, "summary": summary})
+
+    def alive(self) -> None:
+        """Tell the learner it is alive, if it has been quiet for `ALIVE_EVERY_S`."""
         if time.monotonic() - self._last_sent > ALIVE_EVERY_S:
             self.send({"op": "alive"})
+
+    def stop_requested(self) -> bool:
+        """Whether the learner sent a stop (the only message it sends during an episode)."""
         message = self.pipe.receive(0.0)
         if message is None:
             return False
@@ -211,18 +273,25 @@ class _Worker:
         return True
 
     def send(self, message: dict[str, Any]) -> None:
-        self.pipe.send(message)
+        self.pipe.send({**message, "id": self.request_id})
         self._last_sent = time.monotonic()
 
 
 def driver_message(driver: Driver) -> dict[str, Any]:
-    """The ``driver`` message that has a worker drive as `driver` does: IDM's parameters, or a
+    """The ``driver`` request that has a worker drive as `driver` does: IDM's parameters, or a
     policy's weights (float32 arrays as bytes) with its features, lanes and action scale."""
     if isinstance(driver, IDMDriver):
         return {"op": "driver", "kind": "idm", "params": driver.params.to_dict()}
     if not isinstance(driver, PolicyDriver):
         raise ValueError(f"an evaluation worker drives IDM or a policy, not {driver!r}")
     policy, critic = driver.policy, driver.policy.critic
+    arrays = [*policy.actor.params, *(critic.params if critic is not None else ())]
+    size = sum(np.asarray(p, dtype=np.float32).nbytes for p in arrays)
+    if size > MAX_MESSAGE_BYTES // 2:
+        raise UsageError(
+            f"the policy's networks take {size / 2**20:.0f} MiB, more than an evaluation worker "
+            f"reads ({MAX_MESSAGE_BYTES // 2**21} MiB): evaluate inline (no --eval-server)"
+        )
     return {
         "op": "driver",
         "kind": "policy",
@@ -267,16 +336,13 @@ def _from_array(message: dict[str, Any]) -> np.ndarray:
 
 def _messages(pipe: Pipe) -> Iterator[dict[str, Any]]:
     while True:
-        try:
-            message = pipe.receive(None)
-        except EOFError:
-            return
+        message = pipe.receive(None)
         if message is not None:
             yield message
 
 
 def serve(pipe: Pipe) -> None:
-    """Answer the learner's messages until it closes the pipe. A failure is reported, not
+    """Answer the learner's requests until it closes the pipe. A failure is reported, not
     fatal: the learner decides (a reconnect, another episode, or giving the run up)."""
     worker = _Worker(pipe)
     try:
@@ -286,7 +352,7 @@ def serve(pipe: Pipe) -> None:
             except (EOFError, BrokenPipeError):
                 raise
             except Exception as exc:  # reported to the learner, which raises it there
-                worker.send({**error_message(exc), "job": message.get("job")})
+                worker.send(error_message(exc))
     except (EOFError, BrokenPipeError):  # the learner closed the pipe (mid-episode): done
         pass
     finally:

@@ -4,17 +4,18 @@ while training goes on, or inline on a training server.
 With servers of its own (`agent-client train --eval-server`), an evaluation advances one step
 per training iteration on each of them: its requests are sent with the training step's and
 answered while the learner updates, so it costs the learner only choosing the action and reading
-the reply. Inline (on the training servers, or on servers of its own with
-`TrainConfig.eval_while_training` off), `run` drives every episode at once and training waits.
+the reply. Inline on the training servers, `run` drives every episode at once and training
+waits (on servers of its own with `TrainConfig.eval_while_training` off, `EvaluationPool` does,
+one worker process per server).
 
-A job with a `screen` ends as soon as it has certainly failed (`EvaluationJob.screen`): the
-episodes left could not change the verdict, and run inline they are time the learner does not
-get.
+A job with a `screen` ends as soon as its first seeds have certainly failed
+(`EvaluationJob.screen`, `judge_in_order`): the episodes left could not change the verdict, and
+run inline they are time the learner does not get.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,12 +37,13 @@ class EvaluationJob:
     context: dict[str, Any] = field(default_factory=dict)
     """The trainer's bookkeeping (the episode it started at, the policy state evaluated...)."""
     stop_on_collision: bool = False
-    """End the evaluation at its first collision: it has failed, the rest would not change it.
-    The replies in flight on the other servers are read first; the summaries are those of the
-    episodes that finished (the aggregate's ``episodes`` says how many)."""
+    """End the evaluation once its first seeds, judged in order, include a collision: it has
+    failed, the rest would not change it. The replies in flight on the other servers are read
+    first; the summaries are those of the seeds judged (the aggregate's ``episodes`` says how
+    many)."""
     screen: FailureScreen | None = None
-    """End the evaluation as soon as the finished episodes fail a target whatever the others
-    give (`FailureScreen`; a collision among them). Read the same way as `stop_on_collision`."""
+    """End the evaluation as soon as its first seeds fail a target whatever the others give
+    (`FailureScreen`; a collision among them). Read the same way as `stop_on_collision`."""
     stopped: str | None = None
     """Set when the evaluation ended early: the target it had failed for certain."""
 
@@ -56,6 +58,26 @@ def certain_failure(
     if job.stop_on_collision and any(s.collisions for s in done):
         return "no_collisions"
     return None
+
+
+def judge_in_order(
+    job: EvaluationJob, done: Mapping[int, EpisodeSummary], judged: int
+) -> tuple[int, str | None]:
+    """Judge the seeds finished in order after the first `judged`: how many are now judged,
+    and the target the first of them have failed for certain, if any (`certain_failure`).
+
+    In seed order, not in the order episodes finish, so the same policy gets the same verdict,
+    episodes and steps however its episodes are spread over servers and processes.
+    """
+    seeds = len(job.seeds)
+    while judged < seeds and judged in done:
+        judged += 1
+        if judged < seeds:
+            first = [done[i] for i in range(judged)]
+            failed = certain_failure(job, first, range(judged, seeds))
+            if failed is not None:
+                return judged, failed
+    return judged, None
 
 
 @dataclass
@@ -78,6 +100,7 @@ class Evaluator:
         self._running: list[_Running | None] = [None] * len(self.envs)
         self._sent: list[str | None] = [None] * len(self.envs)
         self._done: dict[int, EpisodeSummary] = {}
+        self._judged = 0
 
     @property
     def busy(self) -> bool:
@@ -89,6 +112,7 @@ class Evaluator:
         self.job = job
         self._next_seed = 0
         self._done = {}
+        self._judged = 0
 
     def send(self) -> None:
         """Start the next step (or episode) of the running job on every environment."""
@@ -130,19 +154,16 @@ class Evaluator:
                 self._done[running.seed_index] = episode_summary(running.episode)
                 self._running[index] = None
                 finished = True
-        if finished and job.stopped is None and len(self._done) < len(job.seeds):
-            job.stopped = self._failed(job)
-        if job.stopped is not None or len(self._done) == len(job.seeds):
+        if finished:
+            self._judged, job.stopped = judge_in_order(job, self._done, self._judged)
+        if job.stopped is not None or self._judged == len(job.seeds):
             return self._finish(job)
         return None
 
-    def _failed(self, job: EvaluationJob) -> str | None:
-        remaining = [i for i in range(len(job.seeds)) if i not in self._done]
-        return certain_failure(job, list(self._done.values()), remaining)
-
     def _finish(self, job: EvaluationJob) -> tuple[EvaluationJob, list[EpisodeSummary]]:
-        """The job's summaries in seed order; episodes still running are given up."""
-        summaries = [self._done[i] for i in sorted(self._done)]
+        """The summaries of the judged seeds, in seed order; episodes still running, and any
+        finished beyond the judged ones, are given up."""
+        summaries = [self._done[i] for i in range(self._judged)]
         self.abort()
         return job, summaries
 

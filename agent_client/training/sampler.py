@@ -101,9 +101,9 @@ class Exploration:
 
     def load(self, policy_state: dict[str, Any]) -> None:
         """Take a new policy copy (`Agent.policy_state_dict()`: the actor, critic 1 for lanes)."""
-        self._actor = NumpyActor([np.array(p) for p in policy_state["actor"]])
+        self._actor = NumpyActor([_float32(p) for p in policy_state["actor"]])
         critic = policy_state.get("critic")
-        self._critic = NumpyCritic([np.array(p) for p in critic]) if critic else None
+        self._critic = NumpyCritic([_float32(p) for p in critic]) if critic else None
 
     def configure(self, settings: Settings) -> None:
         """Follow the learner's schedule: warm-up or policy, noise scale, lane epsilon."""
@@ -202,3 +202,8 @@ class SamplingWorker:
 
     def _episode_started(self, index: int) -> None:
         self.exploration.noise.reset()
+
+
+def _float32(tensor: Any) -> np.ndarray:
+    """A float32 copy of a policy tensor (numpy's own array of it, not a view)."""
+    return np.array(tensor.numpy() if hasattr(tensor, "numpy") else tensor, dtype=np.float32)

@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,17 +18,34 @@ import pytest
 from agent_client.drivers.idm import IDMDriver, IDMParams
 from agent_client.drivers.policy import ActionScale, PolicyDriver, load_policy_driver, save_policy
 from agent_client.envs.remote_env import RemoteEnv
-from agent_client.errors import ServerLost, ServerTimeout, ServerUnavailable
+from agent_client.errors import (
+    BridgeError,
+    FeatureMismatch,
+    InsertionFailed,
+    ServerError,
+    ServerLost,
+    ServerTimeout,
+    ServerUnavailable,
+)
 from agent_client.evaluation.targets import FailureScreen
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.td3 import Agent, TD3Config
 from agent_client.training import eval_pool
 from agent_client.training.eval_pool import EvaluationPool
-from agent_client.training.eval_worker import driver_from_message, driver_message
+from agent_client.training.eval_worker import (
+    EvaluationWorkerFailed,
+    Pipe,
+    driver_from_message,
+    driver_message,
+    error_message,
+    raise_error,
+    serve,
+)
 from agent_client.training.evaluator import EvaluationJob, Evaluator
 from protocol.messages import Observation, OptionValue
 from tests.agent_client.conformance.toys import ToyServer
+from tests.conftest import sim_server
 
 SEEDS = [7, 3, 11, 5, 9]
 RESET_OPTIONS: dict[str, OptionValue] = {"decision_interval": 0.1}
@@ -139,8 +157,8 @@ def test_a_server_that_is_not_there_is_reported_as_unavailable_and_no_worker_is_
     started: list[int] = []
     original = eval_pool._WorkerProcess.__init__
 
-    def remember(self: eval_pool._WorkerProcess, address: str) -> None:
-        original(self, address)
+    def remember(self: eval_pool._WorkerProcess, address: str, write_timeout_s: float) -> None:
+        original(self, address, write_timeout_s)
         started.append(self.process.pid)
 
     with pytest.MonkeyPatch.context() as patch:
@@ -167,20 +185,121 @@ def test_a_worker_that_died_is_reported_as_lost_and_started_again_on_reconnect(
     assert [s.to_dict() for s in after] == [s.to_dict() for s in before]
 
 
-def test_a_silent_worker_times_out_and_is_replaced(
-    pool: EvaluationPool, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    monkeypatch.setattr(eval_pool, "STOP_GRACE_S", 0.5)
+def test_a_silent_worker_times_out_and_is_replaced_on_reconnect(pool: EvaluationPool) -> None:
     pool.silence_s = 1.0
     frozen = pool.workers[0].process
     os.kill(frozen.pid, signal.SIGSTOP)
     try:
-        with pytest.raises(ServerTimeout, match="said anything"):
+        with pytest.raises(ServerTimeout, match="said nothing"):
             pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))
+        pool.reconnect(5.0)
     finally:
         with contextlib.suppress(ProcessLookupError):  # killed and reaped: nothing to resume
             os.kill(frozen.pid, signal.SIGCONT)
-    assert pool.workers[0].process.pid != frozen.pid  # given up after the grace period
+    assert pool.workers[0].process.pid != frozen.pid
     assert frozen.wait(timeout=10) is not None
-    pool.reconnect(5.0)
     assert len(pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))) == len(SEEDS)
+
+
+def test_a_worker_that_hangs_mid_episode_is_given_up_and_started_again(
+    pool: EvaluationPool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    reference = pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    monkeypatch.setattr(eval_pool, "STOP_GRACE_S", 0.5)
+    pool.silence_s = 1.0
+    hung = pool.workers[0]
+    request = eval_pool._WorkerProcess.request
+
+    def freeze_on_its_first_episode(self: eval_pool._WorkerProcess, message: dict) -> None:
+        request(self, message)
+        if self is hung and message["op"] == "episode":
+            os.kill(self.process.pid, signal.SIGSTOP)  # it got the episode, and hangs in it
+
+    monkeypatch.setattr(eval_pool._WorkerProcess, "request", freeze_on_its_first_episode)
+    try:
+        with pytest.raises(ServerTimeout, match="said nothing"):
+            pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(hung.process.pid, signal.SIGCONT)
+    monkeypatch.undo()
+    assert hung.process.wait(timeout=10) is not None  # killed
+    pool.silence_s = 30.0
+    pool.reconnect(20.0)  # its server may still hold the dead worker's session a while
+    assert pool.workers[0] is not hung
+    again = pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    assert [s.to_dict() for s in again] == [s.to_dict() for s in reference]
+
+
+def test_errors_come_back_as_the_clients_own_exceptions() -> None:
+    for error in (
+        ServerError("busy", "another client holds this simulator"),
+        InsertionFailed("cf", [3, 4], "insertion_failed: no room"),
+        ServerLost("gone"),
+        FeatureMismatch("6 features, not 7"),
+        KeyError("seed"),
+    ):
+        message = error_message(error)
+        with pytest.raises(BridgeError) as raised:
+            raise_error(message, "evaluation worker for tcp://127.0.0.1:1")
+        expected = type(error) if isinstance(error, BridgeError) else EvaluationWorkerFailed
+        assert type(raised.value) is expected
+        assert "evaluation worker for tcp://127.0.0.1:1" in str(raised.value)
+        if isinstance(error, ServerError):
+            assert isinstance(raised.value, ServerError) and raised.value.code == "busy"
+        if isinstance(error, InsertionFailed):
+            assert isinstance(raised.value, InsertionFailed) and raised.value.seeds == [3, 4]
+
+
+def test_after_its_server_restarts_the_pool_reconnects_and_drives_the_same_episodes() -> None:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        address = f"direct://127.0.0.1:{probe.getsockname()[1]}"
+    with sim_server("--backend", "fake", bind=address) as first:
+        pool = EvaluationPool([address], "cf", "safe", {}, RESET_OPTIONS, 5.0)
+        try:
+            before = pool.run(EvaluationJob("idm", IDMDriver(), SEEDS[:2]))
+            first.process.kill()  # the simulator dies between two evaluations
+            first.process.wait(timeout=10)
+            with pytest.raises(ServerUnavailable):
+                pool.run(EvaluationJob("idm", IDMDriver(), SEEDS[:2]))
+            with sim_server("--backend", "fake", bind=address):  # and comes back
+                pool.reconnect(30.0)
+                after = pool.run(EvaluationJob("idm", IDMDriver(), SEEDS[:2]))
+        finally:
+            pool.close()
+    assert [s.to_dict() for s in after] == [s.to_dict() for s in before]
+
+
+def test_a_worker_whose_first_connection_failed_connects_on_reconnect() -> None:
+    """The worker's own loop, in a thread, over real pipes: ``connect`` to a server that is not
+    up yet fails; once it is, ``reconnect`` connects (the learner restarts no process)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        address = f"direct://127.0.0.1:{probe.getsockname()[1]}"
+    to_worker, from_learner = os.pipe()
+    to_learner, from_worker = os.pipe()
+    learner = Pipe(to_learner, from_learner)
+    worker = threading.Thread(target=serve, args=(Pipe(to_worker, from_worker),), daemon=True)
+    worker.start()
+    try:
+        connect = {"op": "connect", "id": 1, "address": address, "scenario": "cf",
+                   "reward": "safe", "reward_params": {}, "options": {}, "timeout_s": 0.5}  # fmt: skip
+        learner.send(connect)
+        answer = learner.receive(30.0)
+        assert answer is not None and (answer["op"], answer["id"]) == ("error", 1)
+        assert answer["kind"] in ("timeout", "unavailable")
+        with sim_server("--backend", "fake", bind=address):
+            learner.send({"op": "reconnect", "id": 2, "timeout_s": 30.0})
+            answer = learner.receive(60.0)
+            assert answer is not None and (answer["op"], answer["id"]) == ("ready", 2), answer
+            learner.send({"op": "driver", "id": 3, "kind": "idm", "params": {}})
+            learner.send({"op": "episode", "id": 4, "index": 0, "seed": 7})
+            answers = [learner.receive(60.0) for _ in range(2)]
+    finally:
+        os.close(from_learner)  # the worker sees the pipe close and returns
+        worker.join(timeout=30)
+        for fd in (to_learner, to_worker, from_worker):
+            os.close(fd)
+    assert [(a["op"], a["id"]) for a in answers if a] == [("ready", 3), ("summary", 4)]
+    assert not worker.is_alive()
