@@ -265,13 +265,16 @@ class Trainer:
         self._stop_requested = True
 
     def close(self) -> None:
-        if hasattr(self, "collector"):  # absent when the constructor failed before it
-            self.collector.close()  # Ray's sampling workers hold connections of their own
-        self.vec.close()
-        for env in self.eval_envs:
-            env.close()
-        if self.eval_pool is not None:
-            self.eval_pool.close()
+        """Close every connection and stop the evaluation workers, whatever fails first."""
+        try:
+            if hasattr(self, "collector"):  # absent when the constructor failed before it
+                self.collector.close()  # Ray's sampling workers hold connections of their own
+            self.vec.close()
+            for env in self.eval_envs:
+                env.close()
+        finally:
+            if self.eval_pool is not None:
+                self.eval_pool.close()
 
     # ----------------------------------------------------------------------- the loop
 
