@@ -14,7 +14,9 @@ policy gets the same verdict, episodes and steps whichever worker finishes first
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import logging
 import select
 import subprocess
 import sys
@@ -24,11 +26,13 @@ from collections.abc import Sequence
 from typing import Any
 
 from agent_client.defaults import RESET_TIMEOUT_S, STEP_TIMEOUT_S
-from agent_client.errors import BridgeError, ServerLost, ServerTimeout, ServerUnavailable
+from agent_client.errors import BridgeError, ServerLost, ServerTimeout
 from agent_client.evaluation.metrics import EpisodeSummary
 from agent_client.training.eval_worker import ALIVE_EVERY_S, Pipe, driver_message, raise_error
 from agent_client.training.evaluator import EvaluationJob, judge_in_order
 from protocol.messages import OptionValue
+
+log = logging.getLogger(__name__)
 
 STOP_GRACE_S = 10.0
 """How long a worker may take to stop its episode and say so before it is replaced."""
@@ -69,14 +73,15 @@ class _WorkerProcess:
         self.send({**message, "id": self.awaiting})
 
     def send(self, message: dict[str, Any]) -> None:
-        """Send `message`; `ServerLost` if the process is gone, `ServerTimeout` if it reads
-        nothing (a stopped process)."""
+        """Send `message`; `ServerLost` if the process is gone, `ServerTimeout` (and the worker
+        closed) if it stopped reading."""
         if self.closed:
             raise ServerLost(f"the {self.where} was closed")
         try:
             self.pipe.send(message)
-        except TimeoutError as exc:
-            raise ServerTimeout(f"the {self.where} reads nothing: {exc}") from None
+        except TimeoutError as exc:  # part of a message may be in the pipe: it cannot go on
+            self.close(kill=True)
+            raise ServerTimeout(f"the {self.where} stopped reading: {exc}") from None
         except OSError:  # a broken pipe: it died
             raise self._lost() from None
 
@@ -138,7 +143,10 @@ class _WorkerProcess:
             process.wait(timeout=5)
         except subprocess.TimeoutExpired:
             process.kill()
-            process.wait(timeout=10)
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:  # unkillable for now: the OS reaps it later
+                log.warning("the %s did not exit", self.where)
 
 
 class EvaluationPool:
@@ -184,30 +192,18 @@ class EvaluationPool:
         job.stopped = None
         if not job.seeds:
             return []
-        queue = deque(enumerate(job.seeds))
-        done: dict[int, EpisodeSummary] = {}
-        judged = 0
         try:
-            for worker in self.workers:
-                worker.request(driver)
-            for worker in self.workers:
-                worker.wait_answer(self.silence_s)
-            while True:
-                for worker in self.workers:
-                    if worker.running is None and queue:
-                        index, seed = queue.popleft()
-                        worker.request({"op": "episode", "index": index, "seed": seed})
-                        worker.running = index
-                worker, message = self._next_answer()
-                worker.running = None
-                if message.get("op") != "summary":
-                    continue  # "stopped": only after a stop, which `run` sends last
-                done[int(message["index"])] = EpisodeSummary(**message["summary"])
-                judged, job.stopped = judge_in_order(job, done, judged)
-                if job.stopped is not None or judged == len(job.seeds):
-                    return [done[i] for i in range(judged)]
-        finally:
+            summaries = self._drive(job, driver)
+        except Exception:
             self._stop_running()
+            raise
+        except BaseException:  # Ctrl-C: no time to stop episodes or replace workers
+            for worker in self.workers:
+                if worker.running is not None:
+                    worker.close(kill=True)
+            raise
+        self._stop_running()  # the episodes under way when the job ended early
+        return summaries
 
     def reconnect(self, timeout_s: float) -> None:
         """After `ServerUnavailable`: each worker connects afresh, waiting up to `timeout_s`
@@ -222,22 +218,51 @@ class EvaluationPool:
             try:
                 worker.wait_answer(timeout_s + self.silence_s)
             except ServerTimeout:
-                worker.close(kill=True)  # hung: the next reconnect starts another
+                if worker.awaiting is not None:  # silent, not a timeout it reported: hung
+                    worker.close(kill=True)  # the next reconnect starts another
                 raise
 
     def close(self) -> None:
         """Stop every worker (never blocks for long)."""
-        for worker in self.workers:
+        workers, self.workers = self.workers, []
+        for worker in workers:
             worker.close()
-        self.workers = []
 
     # ----------------------------------------------------------------------- internals
+
+    def _drive(self, job: EvaluationJob, driver: dict[str, Any]) -> list[EpisodeSummary]:
+        """Hand the seeds out in order until the judged ones pass every seed or fail."""
+        for worker in self.workers:
+            worker.request(driver)
+        for worker in self.workers:
+            worker.wait_answer(self.silence_s)
+        queue = deque(enumerate(job.seeds))
+        done: dict[int, EpisodeSummary] = {}
+        judged = 0
+        while True:
+            for worker in self.workers:
+                if worker.running is None and queue:
+                    index, seed = queue.popleft()
+                    worker.request({"op": "episode", "index": index, "seed": seed})
+                    worker.running = index
+            worker, message = self._next_answer()
+            worker.running = None
+            if message.get("op") != "summary":
+                continue  # "stopped": only after a stop, which `run` sends last
+            done[int(message["index"])] = EpisodeSummary(**message["summary"])
+            judged, job.stopped = judge_in_order(job, done, judged)
+            if job.stopped is not None or judged == len(job.seeds):
+                return [done[i] for i in range(judged)]
 
     def _start(self, address: str, wait_s: float = 0.0) -> _WorkerProcess:
         """A new worker, connecting to `address` (waiting up to `wait_s` for it to be up);
         its ``ready`` is the answer due."""
         worker = _WorkerProcess(address, write_timeout_s=self.silence_s)
-        worker.request({**self._connect, "address": address, "wait_s": wait_s})
+        try:
+            worker.request({**self._connect, "address": address, "wait_s": wait_s})
+        except BaseException:
+            worker.close(kill=True)
+            raise
         return worker
 
     def _next_answer(self) -> tuple[_WorkerProcess, dict[str, Any]]:
@@ -267,37 +292,37 @@ class EvaluationPool:
     def _stop_running(self) -> None:
         """Stop the episodes still running and read their answers (a summary or ``stopped``
         that crossed the stop, or an error), so the next job starts on quiet pipes. A worker
-        that does not answer within `STOP_GRACE_S` is replaced; one that cannot be is left
-        closed (`reconnect` starts another). Never raises: the job's own outcome stands."""
-        stopping = []
-        for worker in self.workers:
-            if worker.running is None or worker.closed:
-                continue
-            try:
+        that is gone, or does not answer within `STOP_GRACE_S` of the stop, is replaced; one
+        that cannot be is left closed (the next job's `ServerLost` has `reconnect` start
+        another). Never raises: the job's own outcome stands."""
+        stopping = [w for w in self.workers if w.running is not None and not w.closed]
+        for worker in stopping:
+            worker.last_heard = time.monotonic()  # the grace counts from the stop
+            with contextlib.suppress(BridgeError):  # gone: replaced below
                 worker.send({"op": "stop"})
-                stopping.append(worker)
-            except ServerUnavailable:  # died or stopped meanwhile: replaced below
-                stopping.append(worker)
         for worker in stopping:
             try:
                 worker.wait_answer(STOP_GRACE_S)
-            except BridgeError:  # an error answers the request too; silence does not
-                if worker.awaiting is not None:
-                    self._replace(worker)
-            finally:
-                worker.running = None
+                replace = False
+            except BridgeError:  # an error answers the request; silence or death do not
+                replace = worker.awaiting is not None or worker.process.poll() is not None
+            except Exception:  # whatever it sent (a frame it cannot read...), it cannot go on
+                log.exception("the %s failed", worker.where)
+                replace = True
+            worker.running = None
+            if replace:
+                self._replace(worker)
 
     def _replace(self, worker: _WorkerProcess) -> None:
         """Kill `worker` and start another on its server (left closed if that fails)."""
         worker.close(kill=True)
-        index = self.workers.index(worker)
         try:
             replacement = self._start(worker.address, wait_s=STOP_GRACE_S)
-        except OSError:  # no process: the next job's ServerLost tells the learner
+        except (OSError, BridgeError):  # the next job's ServerLost tells the learner
             return
         try:
             replacement.wait_answer(STOP_GRACE_S + self.silence_s)
-        except BridgeError:
+        except Exception:  # a replacement that cannot connect is not kept
             replacement.close(kill=True)
             return
-        self.workers[index] = replacement
+        self.workers[self.workers.index(worker)] = replacement

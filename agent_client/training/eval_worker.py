@@ -99,8 +99,8 @@ class Pipe:
         self._frames: list[bytes] = []
 
     def send(self, message: dict[str, Any]) -> None:
-        """Write `message` whole; `TimeoutError` if the other end took none of it in time,
-        `OSError` (a broken pipe) if it is gone."""
+        """Write `message` whole; `TimeoutError` if the other end did not take it all in time
+        (part of it may be written), `OSError` (a broken pipe) if it is gone."""
         data = memoryview(frame(_encoder.encode(message)))
         timeout = self.write_timeout_s
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -110,7 +110,10 @@ class Pipe:
                 _, writable, _ = select.select([], [self.write_fd], [], max(0.0, remaining))
                 if not writable:
                     raise TimeoutError(f"the other end read nothing in {timeout:g} s")
-            data = data[os.write(self.write_fd, data) :]
+            try:
+                data = data[os.write(self.write_fd, data) :]
+            except BlockingIOError:  # writable, yet full again: wait for room
+                continue
 
     def receive(self, timeout_s: float | None) -> dict[str, Any] | None:
         """The next message; None if none came within `timeout_s` (None: wait for one).

@@ -303,3 +303,24 @@ def test_a_worker_whose_first_connection_failed_connects_on_reconnect() -> None:
             os.close(fd)
     assert [(a["op"], a["id"]) for a in answers if a] == [("ready", 3), ("summary", 4)]
     assert not worker.is_alive()
+
+
+def test_stopping_never_raises_and_replaces_a_worker_that_answered_nonsense(
+    pool: EvaluationPool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    broken = pool.workers[1]
+    broken.request({"op": "episode", "index": 0, "seed": SEEDS[0]})
+    broken.running = 0
+
+    wait_answer = eval_pool._WorkerProcess.wait_answer
+
+    def nonsense(self: eval_pool._WorkerProcess, timeout_s: float) -> dict:
+        if self is broken:
+            raise RuntimeError("a frame it could not read")
+        return wait_answer(self, timeout_s)
+
+    monkeypatch.setattr(eval_pool._WorkerProcess, "wait_answer", nonsense)
+    pool._stop_running()  # no exception: the job's own outcome stands
+    monkeypatch.undo()
+    assert pool.workers[1] is not broken and broken.closed
+    assert len(pool.run(EvaluationJob("idm", IDMDriver(), SEEDS))) == len(SEEDS)

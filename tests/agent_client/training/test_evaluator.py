@@ -128,3 +128,18 @@ def test_a_screened_evaluation_ends_once_it_has_certainly_failed(envs: list[Remo
     assert job.stopped != "as_fast_as_idm"
     if job.stopped is not None:  # the toy road's IDM is far from its ceiling: that may show
         assert not targets_met(aggregate(everything), {"average_speed": speed})[job.stopped]
+
+
+def test_the_screen_judges_the_seeds_in_order(envs: list[RemoteEnv]) -> None:
+    """Where an evaluation stops depends on the seeds' order only, not on which server's episode
+    ends first: the fewest first seeds that have failed for certain."""
+    everything = Evaluator(envs).run(EvaluationJob("idm", IDMDriver(), SEEDS))
+    speed = sum(s.average_speed for s in everything) / len(SEEDS)
+    bounds = [s.average_speed for s in everything]
+    hopeless = FailureScreen(len(SEEDS), 1.05 * speed, speed_bounds=bounds)
+    first = next(k for k in range(1, len(SEEDS)) if hopeless.failed(everything[:k], range(k, 5)))
+    for servers in (envs, envs[:1]):
+        job = EvaluationJob("idm", IDMDriver(), SEEDS, screen=hopeless)
+        stopped = Evaluator(servers).run(job)
+        assert job.stopped == "as_fast_as_idm"
+        assert [s.to_dict() for s in stopped] == [s.to_dict() for s in everything[:first]]
