@@ -206,4 +206,5 @@ class SamplingWorker:
 
 def _float32(tensor: Any) -> np.ndarray:
     """A float32 copy of a policy tensor (numpy's own array of it, not a view)."""
-    return np.array(tensor.numpy() if hasattr(tensor, "numpy") else tensor, dtype=np.float32)
+    data = tensor.detach().numpy() if hasattr(tensor, "detach") else tensor
+    return np.array(data, dtype=np.float32)
