@@ -1,6 +1,7 @@
 """How fast a blocking evaluation runs: the learner driving its servers in lock-step, or one
-worker process per server (`EvaluationPool`, what `agent-client train --eval-server ...
---set eval_while_training=false` uses). Prints steps/s for each and their ratio.
+worker process per server (`EvaluationPool`, what `agent-client train --eval-server ...`
+uses, in the background or, with --set eval_while_training=false, while training waits).
+Prints steps/s for each and their ratio.
 
 Four `direct://` SUMO servers on free loopback ports (two for each way, so that neither waits
 for the other's connections); the two ways take turns, `--rounds` times, on the same held-out

@@ -2,8 +2,9 @@
 
 For each reward and training seed: start a real SUMO server on a free loopback port, train from
 scratch with the recommended configuration (plus any --set), evaluate greedily every
-`eval_every` episodes on `eval_episodes` held-out seeds (on two `direct://` servers of their
-own while training waits, unless --eval-servers 0), and stop at three passing evaluations
+`eval_every` episodes on `eval_episodes` held-out seeds (in the background, on two
+idle-priority `direct://` servers of their own, unless --eval-servers 0; --set
+eval_while_training=false makes training wait for them), and stop at three passing evaluations
 in a row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of leader steps under
 1 s headway, speed >= IDM and >= 98 % of the leader-at-entry ceiling) or at the time budget.
 
@@ -46,10 +47,14 @@ from agent_client.training.trainer import QuietReporter, Trainer
 from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 
-def start_servers(count: int, scheme: str = "tcp") -> tuple[subprocess.Popen[str], list[str]]:
+def start_servers(
+    count: int, scheme: str = "tcp", idle_priority: bool = False
+) -> tuple[subprocess.Popen[str], list[str]]:
     """`count` SUMO servers on free loopback ports, under one `--workers` supervisor."""
     command = [sys.executable, "-m", "sim_server.cli", "--bind", f"{scheme}://127.0.0.1:0",
                "--workers", str(count), "--log-level", "WARNING"]  # fmt: skip
+    if idle_priority:
+        command.append("--idle-priority")
     server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
         return server, [wait_for_line(server, LISTENING, 120.0) for _ in range(count)]
@@ -83,7 +88,8 @@ def run_one(
     supervisors.append(train_supervisor)
     eval_addresses: list[str] = []
     if eval_servers:  # on this machine: the plain-socket transport, cheaper per step
-        eval_supervisor, eval_addresses = start_servers(eval_servers, "direct")
+        background = config.eval_while_training  # then they get only what training leaves
+        eval_supervisor, eval_addresses = start_servers(eval_servers, "direct", background)
         supervisors.append(eval_supervisor)
     holder: list[Trainer] = []
     try:
@@ -207,10 +213,10 @@ def main() -> int:
         "--eval-servers",
         type=int,
         default=2,
-        help="direct:// evaluation servers of their own; training waits while they evaluate "
-        "(default 2, as scripts/main.sh; --set eval_while_training=true evaluates beside "
-        "training instead; 0: inline on the training servers, as `agent-client train` does "
-        "without --eval-server)",
+        help="direct:// evaluation servers of their own, evaluating in the background at idle "
+        "priority (default 2, as scripts/main.sh; --set eval_while_training=false: training "
+        "waits while they evaluate; 0: inline on the training servers, as `agent-client train` "
+        "does without --eval-server)",
     )
     parser.add_argument(
         "--config", type=Path, help="TOML (or JSON) file of settings, before --set (configs/)"
@@ -249,7 +255,6 @@ def main() -> int:
                 "eval_every": args.eval_every,
                 "eval_episodes": args.eval_episodes,
                 "stop_when_converged": True,
-                "eval_while_training": not args.eval_servers,  # blocking on their own
             },
         )
         if config_file is not None:

@@ -21,18 +21,19 @@ export PATH="$PWD/.venv/bin:$PATH"
 out=${OUT:-runs/main-$(date +%Y%m%d-%H%M%S)}
 episodes=${EVAL_EPISODES:-20}
 mkdir -p "$out"
-# Training steps on two tcp:// servers; greedy evaluations block training and run on two
-# direct:// servers of their own, about twice as fast per step here, one worker process
-# driving each (docs/learner.md, "Evaluations during training").
-start_servers() {  # start_servers NAME SCHEME: two SUMO servers, their addresses in NAME.out
-    sim-server --bind "$2://127.0.0.1:0" --workers 2 --backend sumo \
+# Training steps on two tcp:// servers; greedy evaluations run in the background on two
+# direct:// servers of their own, in the kernel's idle scheduling class (they get the CPU time
+# training leaves), one worker process driving each (docs/learner.md, "Evaluations during
+# training").
+start_servers() {  # start_servers NAME SCHEME [ARGS]: two SUMO servers, addresses in NAME.out
+    sim-server --bind "$2://127.0.0.1:0" --workers 2 --backend sumo "${@:3}" \
         >"$out/$1.out" 2>"$out/$1.log" &
     pids+=($!)
 }
 pids=()
 trap 'kill "${pids[@]}" 2>/dev/null; wait "${pids[@]}" 2>/dev/null' EXIT
 start_servers server tcp
-start_servers eval-server direct
+start_servers eval-server direct --idle-priority
 addresses() {  # addresses NAME: wait for its two readiness lines (at most 120 s), print them
     for _ in $(seq 1200); do
         [ "$(grep -c '^listening on ' "$out/$1.out")" -ge 2 ] && break
@@ -47,8 +48,7 @@ mapfile -t eval_servers < <(addresses eval-server)
 [ "${#eval_servers[@]}" -ge 2 ] || { echo "sim-server did not start"; cat "$out/eval-server.log"; exit 1; }
 echo "== four SUMO servers (libsumo) are listening: training on ${servers[*]}, evaluations on ${eval_servers[*]}"
 training=(--server "${servers[0]}" --server "${servers[1]}"
-      --eval-server "${eval_servers[0]}" --eval-server "${eval_servers[1]}"
-      --set eval_while_training=false)
+      --eval-server "${eval_servers[0]}" --eval-server "${eval_servers[1]}")
 
 echo "== 1/5 calibrating IDM on the human drivers of cf"
 agent-client calibrate-idm --server "${servers[0]}" --scenario cf --out "$out/idm.json"

@@ -221,6 +221,13 @@ def _add_process_arguments(group: argparse._ArgumentGroup) -> None:
         help="stop when the process that started this server exits, even by SIGKILL (the "
         "--workers supervisor starts its workers so: none outlives it)",
     )
+    group.add_argument(
+        "--idle-priority",
+        action="store_true",
+        help="run in the kernel's idle scheduling class (Linux SCHED_IDLE; its workers too): "
+        "the server gets only CPU time nothing else wants, for evaluation servers beside "
+        "training (docs/learner.md)",
+    )
 
 
 def build_keygen_parser() -> argparse.ArgumentParser:
@@ -461,6 +468,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         endpoint, credentials = check_usage(args)
+        if args.idle_priority:
+            set_idle_priority()
         if args.workers > 1:
             return _run_workers(argv, args)
         backend = make_backend(args)
@@ -521,6 +530,14 @@ def serve(
     server.serve()
     log.info("stopped")
     return 0
+
+
+def set_idle_priority() -> None:
+    """Move this process (and what it starts later) to the idle scheduling class; `UsageError`
+    where the platform has none."""
+    if not hasattr(os, "SCHED_IDLE"):
+        raise UsageError("--idle-priority needs Linux's SCHED_IDLE scheduling class")
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
 def _spin_us(args: argparse.Namespace) -> float:

@@ -68,9 +68,10 @@ def add_parser(commands: Commands) -> None:
         action="append",
         default=[],
         metavar="ADDRESS",
-        help="a server for the greedy evaluations, which then run while training goes on "
-        "(--set eval_while_training=false: training waits for them; repeatable; default: "
-        "evaluate on the --server(s), training waiting)",
+        help="a server for the greedy evaluations, which then run in the background while "
+        "training goes on (start it with --idle-priority; --set eval_while_training=false: "
+        "training waits for them; repeatable; default: evaluate on the --server(s), training "
+        "waiting)",
     )
     train.add_argument("--resume", type=Path, metavar="RUN", help="continue runs/NAME")
     train.add_argument(

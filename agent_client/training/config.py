@@ -117,11 +117,12 @@ class TrainConfig:
     evaluations of `eval_episodes` episodes, fewer while the policy fails; counted in steps, not
     seconds, so a run stays repeatable. None: evaluate whenever due."""
     eval_while_training: bool = True
-    """With evaluation servers (`agent-client train --eval-server`): evaluate on them while
-    training goes on, one step per training iteration. False: training waits while an
-    evaluation runs there at full speed, screened like an inline one; where the machine has no
-    cores to spare, `direct://` evaluation servers then run it about twice as fast as the
-    `tcp://` training servers would (docs/learner.md, "Evaluations during training")."""
+    """With evaluation servers (`agent-client train --eval-server`): evaluate on them in the
+    background, their workers in the kernel's idle scheduling class (start the servers with
+    `sim-server --idle-priority`), each verdict read `eval_every` episodes after it started,
+    when the next is due; one that could complete convergence runs while training waits. The
+    run is the one False gives: training waits for every evaluation (docs/learner.md,
+    "Evaluations during training")."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
     stop_when_converged: bool = False

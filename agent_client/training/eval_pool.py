@@ -1,6 +1,6 @@
-"""Blocking evaluations on servers of their own, one worker process per server.
+"""Evaluations on servers of their own, one worker process per server.
 
-While training waits for an evaluation, one client driving two servers in lock-step keeps three
+Where training waits for an evaluation, one client driving two servers in lock-step keeps three
 processes busy on two cores, and the client's share of every step (choosing the action,
 checking the reply, scoring it) is the slowest link. With a worker process per server
 (`agent_client.training.eval_worker`) each pair of client and server steps on its own, and the
@@ -10,6 +10,10 @@ training").
 Seeds are handed out in order to whichever worker is free, and the failure screen judges the
 finished episodes in seed order (`judge_in_order`), as the lock-step evaluator does: the same
 policy gets the same verdict, episodes and steps whichever worker finishes first.
+
+A job can also run in the background (`start`, then `poll` now and then, `finish` for its
+verdict): the trainer does so while it trains, with the workers (and their servers) in the
+kernel's idle scheduling class, so that they use only the CPU time training leaves.
 """
 
 from __future__ import annotations
@@ -17,12 +21,13 @@ from __future__ import annotations
 import contextlib
 import itertools
 import logging
+import os
 import select
 import subprocess
 import sys
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 from agent_client.defaults import RESET_TIMEOUT_S, STEP_TIMEOUT_S
@@ -150,7 +155,7 @@ class _WorkerProcess:
 
 
 class EvaluationPool:
-    """Runs `EvaluationJob`s to their end, one worker process per evaluation server."""
+    """Runs `EvaluationJob`s, one at a time, one worker process per evaluation server."""
 
     def __init__(
         self,
@@ -160,8 +165,10 @@ class EvaluationPool:
         reward_params: dict[str, Any],
         options: dict[str, OptionValue],
         timeout_s: float = STEP_TIMEOUT_S,
+        idle_priority: bool = False,
     ) -> None:
-        """Start a worker per address and wait until each has shaken hands with its server."""
+        """Start a worker per address and wait until each has shaken hands with its server.
+        `idle_priority`: the workers run in the idle scheduling class (for background jobs)."""
         if not addresses:
             raise ValueError("an evaluation pool needs at least one server")
         self._connect = {
@@ -172,10 +179,17 @@ class EvaluationPool:
             "options": dict(options),
             "timeout_s": timeout_s,
         }
+        self.idle_priority = idle_priority
         self.silence_s = max(timeout_s, RESET_TIMEOUT_S) + 10 * ALIVE_EVERY_S
-        """A worker silent for longer is hung: its own waits on its server end sooner, and at
-        work it says it is alive every `ALIVE_EVERY_S`."""
+        """A worker silent for longer while the learner waits is hung: its own waits on its
+        server end sooner, and at work it says it is alive every `ALIVE_EVERY_S`."""
         self.workers: list[_WorkerProcess] = []
+        self.job: EvaluationJob | None = None
+        """The job under way (None: `start` may begin one)."""
+        self._queue: deque[tuple[int, int]] = deque()
+        self._done: dict[int, EpisodeSummary] = {}
+        self._judged = 0
+        self._result: list[EpisodeSummary] | None = None
         try:
             for address in addresses:
                 self.workers.append(self._start(address))
@@ -185,29 +199,71 @@ class EvaluationPool:
             self.close()
             raise
 
+    @property
+    def busy(self) -> bool:
+        return self.job is not None
+
     def run(self, job: EvaluationJob) -> list[EpisodeSummary]:
         """Drive `job` to its end (`job.driver` an `IDMDriver` or a `PolicyDriver`). The
         summaries in seed order; `job.stopped` set if it ended early."""
+        self.start(job)
+        return self.finish()
+
+    def start(self, job: EvaluationJob) -> None:
+        """Give the workers `job`'s driver and their first seeds, and return: `poll` moves the
+        job on, `finish` waits for its end."""
+        if self.job is not None:
+            raise RuntimeError("an evaluation is already running")
         driver = driver_message(job.driver)
         job.stopped = None
+        self.job, self._result = job, None
+        self._queue = deque(enumerate(job.seeds))
+        self._done, self._judged = {}, 0
         if not job.seeds:
-            return []
-        try:
-            summaries = self._drive(job, driver)
-        except Exception:
-            self._stop_running()
-            raise
-        except BaseException:  # Ctrl-C: no time to stop episodes or replace workers
+            self._result = []
+            return
+        with self._guard():
             for worker in self.workers:
-                if worker.running is not None:
-                    worker.close(kill=True)
-            raise
-        self._stop_running()  # the episodes under way when the job ended early
+                worker.request(driver)
+            for worker in self.workers:
+                worker.wait_answer(self.silence_s)
+            self._dispatch()
+
+    def poll(self) -> bool:
+        """Read what the workers have said, without waiting, and hand the next seeds out;
+        True once the job is done (`finish` then returns at once)."""
+        if self.job is None:
+            raise RuntimeError("no evaluation is running")
+        with self._guard():
+            while self._result is None and self._advance(timeout_s=0.0):
+                pass
+        return self._result is not None
+
+    def finish(self) -> list[EpisodeSummary]:
+        """Wait for the job's end: the summaries in seed order; `job.stopped` set if it ended
+        early. A worker silent for `silence_s` from now on is hung (`ServerTimeout`)."""
+        if self.job is None:
+            raise RuntimeError("no evaluation is running")
+        now = time.monotonic()
+        for worker in self.workers:  # in the background, starved of CPU, it may have been quiet
+            worker.last_heard = max(worker.last_heard, now)
+        with self._guard():
+            while self._result is None:
+                self._advance(timeout_s=None)
+        summaries, self._result, self.job = self._result, None, None
         return summaries
+
+    def cancel(self) -> None:
+        """Give the job under way up (its running episodes are stopped); never raises."""
+        if self.job is not None:
+            self._stop_running()
+        self.job, self._result = None, None
 
     def reconnect(self, timeout_s: float) -> None:
         """After `ServerUnavailable`: each worker connects afresh, waiting up to `timeout_s`
-        for its server; a worker that died, hung or was busy is replaced."""
+        for its server; a worker that died, hung or was busy is replaced. A job under way is
+        given up."""
+        self.cancel()
         for index, worker in enumerate(self.workers):
             if worker.closed or worker.process.poll() is not None or worker.awaiting is not None:
                 worker.close(kill=True)
@@ -225,65 +281,96 @@ class EvaluationPool:
     def close(self) -> None:
         """Stop every worker (never blocks for long)."""
         workers, self.workers = self.workers, []
+        self.job = None
         for worker in workers:
             worker.close()
 
     # ----------------------------------------------------------------------- internals
 
-    def _drive(self, job: EvaluationJob, driver: dict[str, Any]) -> list[EpisodeSummary]:
-        """Hand the seeds out in order until the judged ones pass every seed or fail."""
-        for worker in self.workers:
-            worker.request(driver)
-        for worker in self.workers:
-            worker.wait_answer(self.silence_s)
-        queue = deque(enumerate(job.seeds))
-        done: dict[int, EpisodeSummary] = {}
-        judged = 0
-        while True:
+    @contextlib.contextmanager
+    def _guard(self) -> Iterator[None]:
+        """A job that fails is given up: its episodes are stopped (or, on Ctrl-C, the workers
+        driving them killed, there is no time to stop them), and the error raised."""
+        try:
+            yield
+        except Exception:
+            self.cancel()
+            raise
+        except BaseException:
             for worker in self.workers:
-                if worker.running is None and queue:
-                    index, seed = queue.popleft()
-                    worker.request({"op": "episode", "index": index, "seed": seed})
-                    worker.running = index
-            worker, message = self._next_answer()
-            worker.running = None
-            if message.get("op") != "summary":
-                continue  # "stopped": only after a stop, which `run` sends last
-            done[int(message["index"])] = EpisodeSummary(**message["summary"])
-            judged, job.stopped = judge_in_order(job, done, judged)
-            if job.stopped is not None or judged == len(job.seeds):
-                return [done[i] for i in range(judged)]
+                if worker.running is not None:
+                    worker.close(kill=True)
+            self.job, self._result = None, None
+            raise
+
+    def _dispatch(self) -> None:
+        """Hand the next seeds, in order, to the idle workers."""
+        for worker in self.workers:
+            if worker.running is None and self._queue:
+                index, seed = self._queue.popleft()
+                worker.request({"op": "episode", "index": index, "seed": seed})
+                worker.running = index
+
+    def _advance(self, timeout_s: float | None) -> bool:
+        """Take one answer (waiting up to `timeout_s`, None: as long as a worker is heard
+        from) and act on it; False if none came. Once the judged seeds pass every seed or fail,
+        the result is kept and the episodes still running are stopped."""
+        job = self.job
+        assert job is not None
+        answer = self._next_answer(timeout_s)
+        if answer is None:
+            return False
+        worker, message = answer
+        worker.running = None
+        if message.get("op") == "summary":  # else "stopped": only after a stop
+            self._done[int(message["index"])] = EpisodeSummary(**message["summary"])
+            self._judged, job.stopped = judge_in_order(job, self._done, self._judged)
+            if job.stopped is not None or self._judged == len(job.seeds):
+                self._result = [self._done[i] for i in range(self._judged)]
+                self._stop_running()  # the episodes under way when the job ended early
+                return True
+        self._dispatch()
+        return True
 
     def _start(self, address: str, wait_s: float = 0.0) -> _WorkerProcess:
         """A new worker, connecting to `address` (waiting up to `wait_s` for it to be up);
         its ``ready`` is the answer due."""
         worker = _WorkerProcess(address, write_timeout_s=self.silence_s)
         try:
+            if self.idle_priority:
+                _set_idle_priority(worker.process.pid)
             worker.request({**self._connect, "address": address, "wait_s": wait_s})
         except BaseException:
             worker.close(kill=True)
             raise
         return worker
 
-    def _next_answer(self) -> tuple[_WorkerProcess, dict[str, Any]]:
+    def _next_answer(self, timeout_s: float | None) -> tuple[_WorkerProcess, dict[str, Any]] | None:
         """The next answer of a busy worker, its error raised as the client's own exception;
-        `ServerTimeout` for a worker silent for `silence_s`."""
+        None after `timeout_s`. With `timeout_s` None, `ServerTimeout` for a worker silent for
+        `silence_s`."""
         busy = [worker for worker in self.workers if worker.running is not None]
         if not busy:
             raise ServerLost("no evaluation worker is driving an episode")
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             ready = [worker for worker in busy if worker.pipe.has_message()]
             if not ready:
                 now = time.monotonic()
-                silent = [w for w in busy if now - w.last_heard >= self.silence_s]
-                if silent:
-                    raise ServerTimeout(
-                        f"the {silent[0].where} said nothing in {self.silence_s:g} s"
-                    )
-                remaining = min(w.last_heard for w in busy) + self.silence_s - now
+                if deadline is None:
+                    silent = [w for w in busy if now - w.last_heard >= self.silence_s]
+                    if silent:
+                        raise ServerTimeout(
+                            f"the {silent[0].where} said nothing in {self.silence_s:g} s"
+                        )
+                    remaining = min(w.last_heard for w in busy) + self.silence_s - now
+                else:
+                    remaining = max(0.0, deadline - now)
                 fds = {worker.pipe.read_fd: worker for worker in busy}
                 readable, _, _ = select.select(list(fds), [], [], remaining)
                 ready = [fds[fd] for fd in readable]
+                if not ready and deadline is not None and time.monotonic() >= deadline:
+                    return None
             for worker in ready:
                 answer = worker.answer(worker.receive(0.0))
                 if answer is not None:
@@ -326,3 +413,10 @@ class EvaluationPool:
             replacement.close(kill=True)
             return
         self.workers[self.workers.index(worker)] = replacement
+
+
+def _set_idle_priority(pid: int) -> None:
+    """Move process `pid` to the idle scheduling class, where the platform has one."""
+    if hasattr(os, "SCHED_IDLE"):
+        with contextlib.suppress(ProcessLookupError):  # it died already: the next read says so
+            os.sched_setscheduler(pid, os.SCHED_IDLE, os.sched_param(0))

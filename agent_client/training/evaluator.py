@@ -1,12 +1,8 @@
-"""Greedy evaluations during training: a driver over the held-out seeds, on servers of its own
-while training goes on, or inline on a training server.
+"""Greedy evaluations during training: what one is (`EvaluationJob`), how its seeds are judged,
+and `Evaluator`, which drives one inline on the training servers while training waits.
 
-With servers of its own (`agent-client train --eval-server`), an evaluation advances one step
-per training iteration on each of them: its requests are sent with the training step's and
-answered while the learner updates, so it costs the learner only choosing the action and reading
-the reply. Inline on the training servers, `run` drives every episode at once and training
-waits (on servers of its own with `TrainConfig.eval_while_training` off, `EvaluationPool` does,
-one worker process per server).
+On servers of their own (`agent-client train --eval-server`) `EvaluationPool` runs the same
+jobs, one worker process per server, in the background or while training waits.
 
 A job with a `screen` ends as soon as its first seeds have certainly failed
 (`EvaluationJob.screen`, `judge_in_order`): the episodes left could not change the verdict, and

@@ -10,10 +10,13 @@ policy, every ego's steps feeding the one buffer (`agent_client.training.multi_c
 evaluations stay one-ego episodes.
 
 Greedy evaluations on held-out seeds judge the policy against the IDM baseline and the
-leader-at-entry ceiling: on servers of their own while training goes on (`eval_servers`), or
-inline, training waiting, on those servers or spread over the training servers. Checkpoints
-make a run resumable; with one server and no evaluation server the same seed and
-configuration give the same run.
+leader-at-entry ceiling. On servers of their own (`eval_servers`) they run in the background,
+in the kernel's idle scheduling class, while training goes on: an evaluation started at episode
+E is read at episode E + `eval_every`, when the next is due, and one that could complete
+convergence runs while training waits, so the run (episodes, verdicts, the converged episode)
+is the one `eval_while_training` off gives, where every evaluation blocks. Without them they
+run inline on the training servers. Checkpoints make a run resumable; with one training server
+the same seed and configuration give the same run.
 """
 
 from __future__ import annotations
@@ -39,7 +42,13 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.drivers.policy import ActionScale, PolicyDriver, save_policy
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
-from agent_client.errors import FeatureMismatch, ServerError, ServerUnavailable, UsageError
+from agent_client.errors import (
+    BridgeError,
+    FeatureMismatch,
+    ServerError,
+    ServerUnavailable,
+    UsageError,
+)
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_summary
 from agent_client.evaluation.targets import FailureScreen, targets_met
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
@@ -98,7 +107,7 @@ class Trainer:
         eval_servers: Sequence[str] = (),
     ) -> None:
         """Train on one `server` address or several (one simulation each, stepped at once);
-        evaluate on `eval_servers` while training, or inline there with
+        evaluate on `eval_servers` in the background, or there while training waits with
         `config.eval_while_training` off (default: inline, on the training servers).
 
         `retry_for_s` > 0: when a server is lost, wait that long for it to come back.
@@ -121,26 +130,15 @@ class Trainer:
             servers, config.scenario, reward=reward, timeout_s=timeout_s, **options
         )
         self.eval_servers = list(eval_servers)
-        self.eval_envs: list[RemoteEnv] = []
-        """The evaluation servers' connections, where evaluations run beside training."""
         self.eval_pool: EvaluationPool | None = None
-        """Their workers, where evaluations run while training waits."""
+        """The evaluation servers' workers, one process per server; idle-priority ones when
+        the evaluations run in the background."""
         try:
-            if eval_servers and not config.eval_while_training:
+            if eval_servers:
                 self.eval_pool = EvaluationPool(
                     eval_servers, config.scenario, config.reward, config.reward_params, options,
-                    timeout_s,
+                    timeout_s, idle_priority=config.eval_while_training,
                 )  # fmt: skip
-            for address in eval_servers if self.eval_pool is None else ():
-                self.eval_envs.append(
-                    RemoteEnv(
-                        address,
-                        config.scenario,
-                        reward=reward,
-                        timeout_s=timeout_s,
-                        **options,
-                    )
-                )
             self._build(len(servers))
         except BaseException:
             self.close()
@@ -207,12 +205,12 @@ class Trainer:
                 self.vec.envs, self.features, self.lanes, self.scale, self._choose,
                 self._next_seed, self.agent.reset_noise, reset_options,
             )  # fmt: skip
-        concurrent = self.eval_envs and config.eval_while_training
-        self.evaluator = Evaluator(self.eval_envs) if concurrent else None
-        """Runs evaluations while training goes on; None: they run inline and training waits."""
         self._pairs = n_envs > 1 and config.learner.policy_delay == 2
         """With several servers the updates due each iteration run as TD3 pairs."""
         self._stop_requested = False
+        self._interrupted = False
+        """A signal (not convergence or the time limit) asked to stop: a background evaluation
+        is given up, not waited for."""
         self._episodes_started = 0
         self._updates_due = 0
         self._losses: list[float] = []
@@ -221,7 +219,9 @@ class Trainer:
         """An evaluation is due but waits for the gate or for `eval_budget`."""
         self._failures_in_a_row = 0
         self._recent_collisions: deque[bool] = deque(maxlen=max(config.eval_gate, 1))
-        self._finished_evaluation: tuple[EvaluationJob, list[EpisodeSummary]] | None = None
+        self._pending: EvaluationJob | None = None
+        """The evaluation running in the background (its verdict due at episode
+        ``context["collect_at"]``; IDM's baseline before the first policy evaluation)."""
         self._started = time.monotonic()
 
     def _multi_lane(self) -> bool:
@@ -244,12 +244,15 @@ class Trainer:
                 self._prepare()
                 self._episodes_started = self.progress.episode
                 while not self._finished():
+                    self._poll_background()
                     for slot in self._resilient(self._iteration):
                         self._episode_done(slot, log)
-                    if self._finished_evaluation is not None:
-                        self._evaluation_done(*self._finished_evaluation, log)
-                        self._finished_evaluation = None
+                if self._pending is not None and not self._interrupted:
+                    self._collect(log)
         finally:
+            self._pending = None
+            if self.eval_pool is not None:
+                self.eval_pool.cancel()
             self.progress.wall_time = time.monotonic() - self._started
             self._checkpoint()
             self._save_policy("policy_final.pt", self._policy_state())
@@ -262,7 +265,7 @@ class Trainer:
 
     def request_stop(self) -> None:
         """Finish the current step, checkpoint and return from `run` (safe from handlers)."""
-        self._stop_requested = True
+        self._stop_requested = self._interrupted = True
 
     def close(self) -> None:
         """Close every connection and stop the evaluation workers, whatever fails first."""
@@ -270,8 +273,6 @@ class Trainer:
             if hasattr(self, "collector"):  # absent when the constructor failed before it
                 self.collector.close()  # Ray's sampling workers hold connections of their own
             self.vec.close()
-            for env in self.eval_envs:
-                env.close()
         finally:
             if self.eval_pool is not None:
                 self.eval_pool.close()
@@ -288,15 +289,14 @@ class Trainer:
     def _prepare(self) -> None:
         """The IDM baseline (on the evaluation servers, else the training ones), pre-training."""
         if self.idm_eval is None and self.config.eval_every > 0:
-            # Where the evaluations run: in lock-step, adding the training servers' slower
-            # tcp:// replies made it ~1.5x slower than the direct:// evaluation servers alone.
             servers = len(self.eval_servers or self.vec.envs)
-            self.say(f"evaluating the IDM baseline on the evaluation seeds ({servers} servers)")
             job = EvaluationJob("idm", self.idm, self._eval_seeds())
-            started = self.profile.blocking_evaluation
-            summaries = self._resilient(lambda: self._evaluate_blocking(job))
-            self.profile.baseline_evaluation += self.profile.blocking_evaluation - started
-            self._set_idm_baseline(summaries)
+            if self._background():
+                self.say(f"evaluating the IDM baseline in the background ({servers} servers)")
+                self._start_background(job)
+            else:
+                self.say(f"evaluating the IDM baseline on the evaluation seeds ({servers} servers)")
+                self._set_idm_baseline(self._resilient(lambda: self._evaluate_blocking(job)))
             self.collector.drop_episodes()
         if self.config.pretrain_idm and self.progress.global_step == 0:
             self._resilient(self._pretrain)
@@ -305,13 +305,9 @@ class Trainer:
         """Send, update while the simulators step, receive; returns the episodes that ended."""
         seconds, clock = self.profile.seconds, time.perf_counter
         agent, batch_size = self.agent, self.config.learner.batch_size
-        evaluator = self.evaluator if self.evaluator is not None and self.evaluator.busy else None
         started = clock()
         self.collector.send()
         sent = clock()
-        if evaluator is not None:
-            evaluator.send()
-        evaluation_sent = clock()
         due = self._updates_due
         if self._pairs:  # TD3's updates two at a time (one compiled call); an odd one waits
             due -= due % 2
@@ -323,16 +319,12 @@ class Trainer:
         updated = clock()
         collected = self.collector.receive()
         received = clock()
-        if evaluator is not None:
-            self._finished_evaluation = evaluator.receive()
-        evaluated = clock()
         self._store(collected)
         stored = clock()
         seconds["act_and_send"] += sent - started
-        seconds["evaluation"] += (evaluation_sent - sent) + (evaluated - received)
-        seconds["update"] += updated - evaluation_sent
+        seconds["update"] += updated - sent
         seconds["wait_and_receive"] += received - updated
-        seconds["bookkeeping"] += stored - evaluated
+        seconds["bookkeeping"] += stored - received
         self.profile.iterations += 1
         self._failures_in_a_row = 0
         return collected.finished
@@ -374,10 +366,11 @@ class Trainer:
 
     def _own_connections(self) -> list[RemoteEnv]:
         """The connections this process drives: with Ray sampling the training servers belong
-        to the workers (which reconnect on their own), only the evaluation servers to us."""
+        to the workers (which reconnect on their own); the evaluation pool's workers are
+        reconnected by the pool."""
         if isinstance(self.collector, LocalCollector | MultiEgoCollector):
-            return [*self.vec.envs, *self.eval_envs]
-        return list(self.eval_envs)
+            return list(self.vec.envs)
+        return []
 
     def _resilient(self, work: Callable[[], T]) -> T:
         """Run `work`; on a lost server (if a retry time is set) or a failed simulator episode,
@@ -407,11 +400,9 @@ class Trainer:
                 self.say(f"the simulator failed ({exc}); starting new episodes")
 
     def _drop_running(self) -> None:
-        """Forget every episode under way; an interrupted evaluation starts again later."""
+        """Forget the training episodes under way (a background evaluation the failure ended
+        runs again, from its start, when its verdict is due)."""
         self.collector.drop_episodes()
-        if self.evaluator is not None and self.evaluator.busy:
-            self.evaluator.abort()
-            self._evaluation_wanted = True
         self._updates_due = 0
 
     # ----------------------------------------------------------------------- episodes
@@ -424,6 +415,9 @@ class Trainer:
         log.episode(row)
         self.reporter.episode(row)
         self._recent_collisions.append(int(row["collisions"]) > 0)
+        pending = self._pending
+        if pending is not None and progress.episode >= pending.context.get("collect_at", math.inf):
+            self._collect(log)  # before the next is due: its verdict decides when that one runs
         every = self.config.eval_every
         if progress.learning_episode is None and self._learning():
             progress.learning_episode = progress.episode - 1  # it began during this one
@@ -510,27 +504,30 @@ class Trainer:
         return self.agent.policy_state_dict(self.config.deploy_averaged)
 
     def _start_policy_evaluation(self, log: RunLog) -> None:
-        """Evaluate the current policy: queued on the evaluation servers, or inline now."""
-        if self.evaluator is not None and self.evaluator.busy:
-            return  # still wanted: starts when the evaluator is free
+        """Evaluate the current policy: in the background, its verdict read `eval_every`
+        episodes on, or now while training waits (inline, with `eval_while_training` off, or
+        when a pass would complete convergence)."""
         self._evaluation_wanted = False
+        if self._pending is not None:  # IDM's baseline, or a verdict due at this episode
+            self._collect(log)
+        progress = self.progress
         state = self._policy_state()
         driver = PolicyDriver(Policy.from_state_dict(state), self.features, self.scale, self.lanes)
         context = {
-            "episode": self.progress.episode,
-            "global_step": self.progress.global_step,
+            "episode": progress.episode,
+            "global_step": progress.global_step,
             "policy_state": state,
             "evaluation_seconds_before": self.profile.evaluation_seconds,
+            "collect_at": progress.episode + self.config.eval_every,
         }
         seeds = self._eval_seeds()
-        # Inline (on the training servers, or on evaluation servers with eval_while_training
-        # off), an evaluation blocks training: it ends once certainly failed. Concurrent, on
-        # servers of its own, it costs the learner little, and keeps all its episodes.
-        inline = self.evaluator is None
-        screen = self._screen(len(seeds)) if self.config.eval_screen and inline else None
+        screen = self._screen(len(seeds)) if self.config.eval_screen else None
         job = EvaluationJob("policy", driver, seeds, context, stop_on_collision=True, screen=screen)
-        if self.evaluator is not None:
-            self.evaluator.start(job)
+        could_converge = progress.converged_episode is None and (
+            progress.passed_in_a_row + 1 >= self.config.converged_evals
+        )
+        if self._background() and not could_converge:
+            self._start_background(job)
             return
         summaries = self._resilient(lambda: self._evaluate_blocking(job))
         if not self.eval_servers:
@@ -549,16 +546,54 @@ class Trainer:
         bounds = ceilings if self._one_lane and ceilings and len(ceilings) == seeds else None
         return FailureScreen(seeds, self.idm_eval["average_speed"], max_steps, bounds)
 
-    def _evaluate_blocking(self, job: EvaluationJob) -> list[EpisodeSummary]:
-        """Run `job` to its end while training waits: on the evaluation servers' workers, else
-        in lock-step on the evaluation or training servers."""
+    def _background(self) -> bool:
+        """Whether evaluations run in the background (on evaluation servers of their own)."""
+        return self.eval_pool is not None and self.config.eval_while_training
+
+    def _start_background(self, job: EvaluationJob) -> None:
+        pool = self.eval_pool
+        assert pool is not None
+        self._resilient(lambda: pool.start(job))
+        self._pending = job
+
+    def _poll_background(self) -> None:
+        """Let the background evaluation's workers have their next seeds. A failure there gives
+        the evaluation up; it runs again, training waiting, when its verdict is due."""
+        pool = self.eval_pool
+        if pool is None or pool.job is None:
+            return
         started = time.perf_counter()
         try:
-            if self.eval_pool is not None:
-                return self.eval_pool.run(job)
-            return Evaluator(self.eval_envs or self.vec.envs).run(job)
+            pool.poll()
+        except BridgeError as exc:  # the pool has stopped the job's episodes
+            self.say(f"the background evaluation failed ({exc}); it runs again when due")
         finally:
-            self.profile.blocking_evaluation += time.perf_counter() - started
+            self.profile.seconds["evaluation"] += time.perf_counter() - started
+
+    def _collect(self, log: RunLog) -> None:
+        """Wait for the background evaluation's end and book its verdict."""
+        job = self._pending
+        assert job is not None
+        summaries = self._resilient(lambda: self._evaluate_blocking(job))
+        self._pending = None
+        self._evaluation_done(job, summaries, log)
+
+    def _evaluate_blocking(self, job: EvaluationJob) -> list[EpisodeSummary]:
+        """Run `job` to its end (or wait for its end, if it runs in the background) while
+        training waits: on the evaluation servers' workers, else in lock-step on the training
+        servers."""
+        started = time.perf_counter()
+        try:
+            if self.eval_pool is None:
+                return Evaluator(self.vec.envs).run(job)
+            if self.eval_pool.job is job:
+                return self.eval_pool.finish()
+            return self.eval_pool.run(job)  # from its start: a failure ended it in the background
+        finally:
+            waited = time.perf_counter() - started
+            self.profile.blocking_evaluation += waited
+            if job.name == "idm":
+                self.profile.baseline_evaluation += waited
 
     def _set_idm_baseline(self, summaries: list[EpisodeSummary]) -> None:
         self.idm_eval = aggregate(summaries)
@@ -575,8 +610,6 @@ class Trainer:
     ) -> None:
         if job.name == "idm":
             self._set_idm_baseline(summaries)
-            if self._evaluation_wanted:
-                self._start_policy_evaluation(log)
             return
         assert self.idm_eval is not None
         result = aggregate(summaries)
@@ -584,8 +617,8 @@ class Trainer:
         if job.stopped is not None:  # failed for certain, whatever the partial figures say
             met[job.stopped] = False
         complete = len(summaries) == len(job.seeds)
-        # From this job's start (on the evaluation servers the next may start before this one
-        # is booked).
+        # The learner's seconds from this job's start: all of it if training waited, else the
+        # polls and the wait for its end.
         seconds = self.profile.evaluation_seconds - job.context["evaluation_seconds_before"]
         steps = sum(s.steps for s in summaries)
         progress = self.progress
@@ -595,7 +628,8 @@ class Trainer:
         progress.passed_in_a_row = progress.passed_in_a_row + 1 if passes else 0
         budget = self.config.eval_budget
         if budget is not None and not passes:  # wait for training to outweigh what it cost
-            progress.evaluation_resume_step = progress.global_step + math.ceil(steps / budget)
+            started_at = job.context["global_step"]  # the same whether training waited or not
+            progress.evaluation_resume_step = started_at + math.ceil(steps / budget)
         ratio = result["speed_ratio_to_ceiling"]  # NaN where no ceiling is reported (the ring)
         score = sum(met.values()) + (ratio if math.isfinite(ratio) else 0.0)
         if complete and score >= progress.best_score:  # a stopped one's figures are partial
@@ -618,8 +652,6 @@ class Trainer:
         progress.evaluations.append(evaluation)
         log.evaluation(evaluation)
         self.say(evaluation_line(evaluation))
-        if self._evaluation_wanted:
-            self._start_policy_evaluation(log)
         self._check_convergence()
 
     def _idm_speed_on(self, summaries: list[EpisodeSummary]) -> float:

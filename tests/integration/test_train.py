@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -224,6 +225,17 @@ def test_the_wave_reward_trains_on_the_ring_and_its_evaluations_rank_policies(
     assert (tmp_path / "policy.pt").exists()
 
 
+def record_messages(trainer: Trainer) -> list[tuple[int, str]]:
+    """The trainer's messages from now on, each with the episode count when it was said."""
+    said: list[tuple[int, str]] = []
+
+    def say(text: str) -> None:
+        said.append((trainer.progress.episode, text))
+
+    trainer.say = say  # type: ignore[method-assign]
+    return said
+
+
 def run_rows(folder: Path) -> list[dict[str, str]]:
     """episodes.csv without the wall-clock column."""
     return [{k: v for k, v in row.items() if k != "wall_time"} for row in read_rows(folder)]
@@ -260,31 +272,61 @@ def test_the_same_seed_and_configuration_give_the_same_run(
         assert mine.equal(theirs)
 
 
-def test_evaluations_run_on_their_own_server_while_training_goes_on(
+def test_background_evaluations_give_the_run_that_blocking_ones_give(
     scenario_cache: Path, tmp_path: Path
 ) -> None:
+    # Evaluations on an idle-priority server of their own: in the background (the default) a
+    # verdict is read when the next evaluation is due, blocking (eval_while_training off) at
+    # once. The episodes, the verdicts, when they ran and the policy are the same.
+    config = fast_config(episodes=14, seed=5, eval_every=2, eval_episodes=2, eval_gate=0,
+                         eval_budget=1.0)  # fmt: skip
+    runs: dict[str, dict[str, Any]] = {}
     with (
+        sim_server("--backend", "sumo", "--idle-priority", cache_dir=scenario_cache) as evaluate,
         sim_server("--backend", "sumo", cache_dir=scenario_cache) as train,
-        sim_server("--backend", "sumo", cache_dir=scenario_cache) as evaluate,
     ):
-        config = fast_config(episodes=8, eval_every=2, eval_episodes=2)
-        trainer = Trainer(config, train.address, tmp_path, eval_servers=[evaluate.address])
-        try:
-            progress = trainer.run()
-        finally:
-            trainer.close()
-    assert trainer.evaluator is not None
-    assert progress.evaluations, "no evaluation finished while training"
-    assert trainer.profile.seconds["evaluation"] > 0  # it ran inside the training iterations
-    assert trainer.profile.blocking_evaluation < 60  # only the IDM baseline blocked
-    assert trainer.profile.baseline_evaluation == trainer.profile.blocking_evaluation
-    rows = read_rows(tmp_path / "evaluations.csv")
-    assert len(rows) == len(progress.evaluations)
-    assert all(int(r["episodes"]) == 2 for r in rows)
-    # Each evaluation's seconds are its own, from its start, within the iterations' share.
-    seconds = [float(r["seconds"]) for r in rows]
-    assert all(s > 0 for s in seconds)
-    assert sum(seconds) <= trainer.profile.seconds["evaluation"] + 1e-6
+        assert os.sched_getscheduler(evaluate.process.pid) == os.SCHED_IDLE
+        for name, background in (("background", True), ("blocking", False)):
+            changed = apply_overrides(config, {"eval_while_training": background})
+            trainer = Trainer(changed, train.address, tmp_path / name,
+                              eval_servers=[evaluate.address])  # fmt: skip
+            said = record_messages(trainer)
+            try:
+                progress = trainer.run()
+                assert trainer.eval_pool is not None
+                classes = {os.sched_getscheduler(w.process.pid) for w in trainer.eval_pool.workers}
+            finally:
+                trainer.close()
+            runs[name] = {"progress": progress, "said": said, "classes": classes,
+                          "policy": trainer.agent.policy_state_dict(), "profile": trainer.profile}  # fmt: skip
+    background, blocking = runs["background"], runs["blocking"]
+    assert background["classes"] == {os.SCHED_IDLE}
+    assert os.SCHED_IDLE not in blocking["classes"]
+    assert run_rows(tmp_path / "background" / "episodes.csv") == run_rows(
+        tmp_path / "blocking" / "episodes.csv"
+    )
+    timing = {"wall_time", "seconds", "evaluation_share"}
+    evaluations = [
+        [{k: v for k, v in e.items() if k not in timing} for e in run["progress"].evaluations]
+        for run in (background, blocking)
+    ]
+    assert len(evaluations[0]) >= 3 and evaluations[0] == evaluations[1]
+    for mine, theirs in zip(
+        background["policy"]["actor"], blocking["policy"]["actor"], strict=True
+    ):
+        assert mine.equal(theirs)
+
+    def booked(run: dict[str, Any]) -> list[tuple[int, int]]:
+        """(episode it started at, episode when its verdict was read) per evaluation."""
+        return [(int(text.split()[2].rstrip(":")), at) for at, text in run["said"]
+                if text.startswith("  eval @")]  # fmt: skip
+
+    assert all(start == at for start, at in booked(blocking))
+    assert any(at > start for start, at in booked(background)), "nothing ran in the background"
+    profile = background["profile"]
+    assert profile.seconds["evaluation"] > 0  # the polls between training iterations
+    rows = read_rows(tmp_path / "background" / "evaluations.csv")
+    assert sum(float(r["seconds"]) for r in rows) <= profile.evaluation_seconds + 1e-6
 
 
 def test_with_eval_while_training_off_evaluations_block_on_their_own_server(
@@ -315,8 +357,7 @@ def test_with_eval_while_training_off_evaluations_block_on_their_own_server(
             progress = trainer.run()
         finally:
             trainer.close()
-    assert trainer.evaluator is None  # nothing runs beside training
-    assert trainer.eval_pool is not None and not trainer.eval_envs  # its worker drives the server
+    assert trainer.eval_pool is not None and not trainer.eval_pool.idle_priority
     assert len(progress.evaluations) >= 3
     # The blocking time is the IDM baseline's and the evaluations' own, each counted once.
     profile = trainer.profile

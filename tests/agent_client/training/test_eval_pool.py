@@ -90,6 +90,40 @@ def test_the_workers_drive_the_same_episodes_as_the_learner_would(pool: Evaluati
     assert [s.average_speed for s in other] != [s.average_speed for s in summaries]
 
 
+def test_a_job_in_the_background_ends_as_the_same_job_run_at_once(
+    servers: list[ToyServer],
+) -> None:
+    idm = IDMDriver(IDMParams(T=1.2))
+    addresses = [s.address for s in servers]
+    background = EvaluationPool(addresses, "cf", "safe", {}, RESET_OPTIONS, 5.0, idle_priority=True)
+    try:
+        if hasattr(os, "SCHED_IDLE"):  # the kernel gives its workers only CPU time left over
+            assert {os.sched_getscheduler(w.process.pid) for w in background.workers} == {
+                os.SCHED_IDLE
+            }
+        job = EvaluationJob("idm", idm, SEEDS)
+        background.start(job)
+        assert background.busy and background.job is job
+        with pytest.raises(RuntimeError, match="already running"):
+            background.start(EvaluationJob("idm", idm, SEEDS))
+        polls = 0
+        while not background.poll():  # never waits: the learner trains in between
+            polls += 1
+        assert polls > 0, "the job was done before the learner could have trained at all"
+        summaries = background.finish()
+        assert not background.busy
+        # Given up half-way, the pool takes the next job as if nothing had run.
+        background.start(EvaluationJob("idm", idm, SEEDS))
+        background.poll()
+        background.cancel()
+        again = background.run(EvaluationJob("idm", idm, SEEDS))
+    finally:
+        background.close()
+    expected = lockstep(EvaluationJob("idm", idm, SEEDS))
+    assert [s.to_dict() for s in summaries] == expected
+    assert [s.to_dict() for s in again] == expected
+
+
 @pytest.mark.parametrize("lane_change", [False, True])
 def test_a_policy_drives_the_workers_as_it_drives_the_learner(
     pool: EvaluationPool, tmp_path: Path, lane_change: bool
