@@ -119,10 +119,10 @@ class TrainConfig:
     eval_while_training: bool = True
     """With evaluation servers (`agent-client train --eval-server`): evaluate on them in the
     background, their workers in the kernel's idle scheduling class (start the servers with
-    `sim-server --idle-priority`), each verdict read `eval_every` episodes after it started,
-    when the next is due; one that could complete convergence runs while training waits. The
-    run is the one False gives: training waits for every evaluation (docs/learner.md,
-    "Evaluations during training")."""
+    `sim-server --idle-priority`), each verdict read at the next episode where another
+    evaluation may be due (the next multiple of `eval_every`); one that could complete
+    convergence runs while training waits. The run is the one False gives: training waits for
+    every evaluation (docs/learner.md, "Evaluations during training")."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
     stop_when_converged: bool = False

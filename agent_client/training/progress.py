@@ -61,7 +61,8 @@ class Profile:
     seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(PHASES, 0.0))
     iterations: int = 0
     blocking_evaluation: float = 0.0
-    """Seconds spent in evaluations that training waited for (inline, or the IDM baseline)."""
+    """Seconds training waited for evaluations (run while it waited, or a background one's
+    end); the ``evaluation`` phase is the background's polls between iterations."""
     baseline_evaluation: float = 0.0
     """Of `blocking_evaluation`, the seconds of the IDM baseline's evaluation."""
 
@@ -75,7 +76,7 @@ class Profile:
         return self.seconds["evaluation"] + self.blocking_evaluation
 
     def evaluation_share(self) -> float:
-        """The share of the loop's time that evaluations took (concurrent and blocking)."""
+        """The share of the loop's time that evaluations took (polls and waits)."""
         total = self.total
         return self.evaluation_seconds / total if total else 0.0
 

@@ -11,8 +11,8 @@ evaluations stay one-ego episodes.
 
 Greedy evaluations on held-out seeds judge the policy against the IDM baseline and the
 leader-at-entry ceiling. On servers of their own (`eval_servers`) they run in the background,
-in the kernel's idle scheduling class, while training goes on: an evaluation started at episode
-E is read at episode E + `eval_every`, when the next is due, and one that could complete
+in the kernel's idle scheduling class, while training goes on: an evaluation is read at the
+next multiple of `eval_every`, where the next may be due, and one that could complete
 convergence runs while training waits, so the run (episodes, verdicts, the converged episode)
 is the one `eval_while_training` off gives, where every evaluation blocks. Without them they
 run inline on the training servers. Checkpoints make a run resumable; with one training server
@@ -510,7 +510,7 @@ class Trainer:
         self._evaluation_wanted = False
         if self._pending is not None:  # IDM's baseline, or a verdict due at this episode
             self._collect(log)
-        progress = self.progress
+        progress, every = self.progress, self.config.eval_every
         state = self._policy_state()
         driver = PolicyDriver(Policy.from_state_dict(state), self.features, self.scale, self.lanes)
         context = {
@@ -518,7 +518,10 @@ class Trainer:
             "global_step": progress.global_step,
             "policy_state": state,
             "evaluation_seconds_before": self.profile.evaluation_seconds,
-            "collect_at": progress.episode + self.config.eval_every,
+            # The next episode at which another evaluation may be due: its verdict (and the
+            # budget's wait it sets) must be known there. One the gate or the budget held back
+            # started after a multiple of `eval_every`, and the next is due sooner.
+            "collect_at": (progress.episode // every + 1) * every,
         }
         seeds = self._eval_seeds()
         screen = self._screen(len(seeds)) if self.config.eval_screen else None

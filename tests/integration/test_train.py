@@ -279,7 +279,7 @@ def test_background_evaluations_give_the_run_that_blocking_ones_give(
     # verdict is read when the next evaluation is due, blocking (eval_while_training off) at
     # once. The episodes, the verdicts, when they ran and the policy are the same.
     config = fast_config(episodes=14, seed=5, eval_every=2, eval_episodes=2, eval_gate=0,
-                         eval_budget=1.0)  # fmt: skip
+                         eval_budget=0.5)  # fmt: skip
     runs: dict[str, dict[str, Any]] = {}
     with (
         sim_server("--backend", "sumo", "--idle-priority", cache_dir=scenario_cache) as evaluate,
@@ -311,6 +311,9 @@ def test_background_evaluations_give_the_run_that_blocking_ones_give(
         for run in (background, blocking)
     ]
     assert len(evaluations[0]) >= 3 and evaluations[0] == evaluations[1]
+    # One the gate or the budget held back (it started between two multiples of eval_every):
+    # its verdict is due at the next multiple, sooner than eval_every episodes on.
+    assert any(int(e["episode"]) % 2 for e in evaluations[1]), "no evaluation was held back"
     for mine, theirs in zip(
         background["policy"]["actor"], blocking["policy"]["actor"], strict=True
     ):

@@ -1,20 +1,23 @@
 """When the trainer evaluates: after a failed evaluation `eval_budget` makes the next wait until
 training has outweighed it (later, never fewer episodes each), and every evaluation row says
-how many of its episodes ran and why it stopped; against a live ``sim-server --backend fake``."""
+how many of its episodes ran and why it stopped, and a background evaluation that failed runs
+again; against a live ``sim-server --backend fake``."""
 
 from __future__ import annotations
 
 from itertools import pairwise
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from agent_client.errors import UsageError
+from agent_client.errors import ServerLost, UsageError
 from agent_client.training.config import TrainConfig, apply_overrides
+from agent_client.training.eval_pool import EvaluationPool
 from agent_client.training.run_log import read_rows
 from agent_client.training.trainer import Trainer
 from tests.agent_client.training import short_runs
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, sim_server
 
 FAST = {
     "episodes": 16,
@@ -84,3 +87,49 @@ def test_the_first_evaluation_comes_eval_every_episodes_after_learning_began(
 def test_a_budget_must_be_positive(budget: float) -> None:
     with pytest.raises(UsageError, match="eval_budget must be > 0"):
         apply_overrides(TrainConfig(), {"eval_budget": budget})
+
+
+def test_a_background_evaluation_that_failed_runs_again_when_its_verdict_is_due(
+    fake_server: RunningServer, tmp_path: Path
+) -> None:
+    config = apply_overrides(TrainConfig(), {**FAST, "eval_every": 2, "episodes": 12})
+    runs: dict[str, Trainer] = {}
+    failed: list[str] = []
+    with sim_server("--backend", "fake", "--idle-priority") as evaluate:
+        for name in ("undisturbed", "disturbed"):
+            trainer = Trainer(config, fake_server.address, tmp_path / name, timeout_s=5.0,
+                              eval_servers=[evaluate.address])  # fmt: skip
+            said: list[str] = []
+            trainer.say = said.append  # type: ignore[method-assign]
+            pool = trainer.eval_pool
+            assert pool is not None
+            if name == "disturbed":
+                poll = pool.poll
+
+                def fail_once(pool: EvaluationPool = pool, poll: Any = poll) -> bool:
+                    """The first policy evaluation's server goes away under it (as the pool
+                    leaves it: the job given up)."""
+                    job = pool.job
+                    if job is not None and job.name == "policy" and not failed:
+                        failed.append(str(job.context["episode"]))
+                        pool.cancel()
+                        raise ServerLost("the evaluation server went away")
+                    return bool(poll())
+
+                pool.poll = fail_once  # type: ignore[method-assign]
+            try:
+                trainer.run()
+            finally:
+                trainer.close()
+            runs[name] = trainer
+            if name == "disturbed":
+                assert any("the background evaluation failed" in text for text in said)
+    assert failed, "no policy evaluation ran in the background"
+    timing = {"wall_time", "seconds", "evaluation_share"}
+    undisturbed, disturbed = (
+        [{k: v for k, v in e.items() if k not in timing} for e in runs[name].progress.evaluations]
+        for name in ("undisturbed", "disturbed")
+    )
+    # The evaluation given up ran again, from its start, on the policy it was started with.
+    assert disturbed == undisturbed
+    assert str(disturbed[0]["episode"]) == failed[0]
