@@ -72,7 +72,7 @@ class Profile:
 
     @property
     def evaluation_seconds(self) -> float:
-        """Seconds evaluations took: their part of the iterations plus the blocking ones."""
+        """Seconds evaluations took from the loop: the background's polls plus the waits."""
         return self.seconds["evaluation"] + self.blocking_evaluation
 
     def evaluation_share(self) -> float:

@@ -209,8 +209,8 @@ class Trainer:
         """With several servers the updates due each iteration run as TD3 pairs."""
         self._stop_requested = False
         self._interrupted = False
-        """A signal (not convergence or the time limit) asked to stop: a background evaluation
-        is given up, not waited for."""
+        """Ctrl-C or SIGTERM asked to stop: a background evaluation is given up, not waited for
+        (the checkpoint keeps it: a resumed run starts it again)."""
         self._episodes_started = 0
         self._updates_due = 0
         self._losses: list[float] = []
@@ -219,6 +219,8 @@ class Trainer:
         """An evaluation is due but waits for the gate or for `eval_budget`."""
         self._failures_in_a_row = 0
         self._recent_collisions: deque[bool] = deque(maxlen=max(config.eval_gate, 1))
+        self._restored_evaluation: tuple[dict[str, Any], dict[str, Any]] | None = None
+        """A resumed run's evaluation that was under way when it stopped: (policy, context)."""
         self._pending: EvaluationJob | None = None
         """The evaluation running in the background (its verdict due at episode
         ``context["collect_at"]``; IDM's baseline before the first policy evaluation)."""
@@ -241,7 +243,7 @@ class Trainer:
         self._started = time.monotonic() - self.progress.wall_time
         try:
             with self._signals():
-                self._prepare()
+                self._prepare(log)
                 self._episodes_started = self.progress.episode
                 while not self._finished():
                     self._poll_background()
@@ -250,22 +252,25 @@ class Trainer:
                 if self._pending is not None and not self._interrupted:
                     self._collect(log)
         finally:
-            self._pending = None
-            if self.eval_pool is not None:
-                self.eval_pool.cancel()
-            self.progress.wall_time = time.monotonic() - self._started
-            self._checkpoint()
-            self._save_policy("policy_final.pt", self._policy_state())
-            if not (self.out / "policy.pt").exists():
-                self._save_policy("policy.pt", self._policy_state())
-            (self.out / "profile.json").write_text(json.dumps(self.profile.to_dict(), indent=2))
-            log.close()
+            try:
+                self.progress.wall_time = time.monotonic() - self._started
+                self._checkpoint()  # with an evaluation still running: a resumed run redoes it
+                self._save_policy("policy_final.pt", self._policy_state())
+                if not (self.out / "policy.pt").exists():
+                    self._save_policy("policy.pt", self._policy_state())
+                (self.out / "profile.json").write_text(json.dumps(self.profile.to_dict(), indent=2))
+                log.close()
+            finally:
+                self._pending = None
+                if self.eval_pool is not None:
+                    self.eval_pool.cancel()
         self.say(self.profile.line())
         return self.progress
 
     def request_stop(self) -> None:
-        """Finish the current step, checkpoint and return from `run` (safe from handlers)."""
-        self._stop_requested = self._interrupted = True
+        """Finish the current step, checkpoint and return from `run` (safe from handlers); an
+        evaluation running in the background is waited for and booked."""
+        self._stop_requested = True
 
     def close(self) -> None:
         """Close every connection and stop the evaluation workers, whatever fails first."""
@@ -286,8 +291,9 @@ class Trainer:
             self._stop_requested = True
         return self._stop_requested or self.progress.episode >= self.config.episodes
 
-    def _prepare(self) -> None:
-        """The IDM baseline (on the evaluation servers, else the training ones), pre-training."""
+    def _prepare(self, log: RunLog) -> None:
+        """The IDM baseline (on the evaluation servers, else the training ones), an evaluation
+        a resumed run had under way, pre-training."""
         if self.idm_eval is None and self.config.eval_every > 0:
             servers = len(self.eval_servers or self.vec.envs)
             job = EvaluationJob("idm", self.idm, self._eval_seeds())
@@ -296,8 +302,16 @@ class Trainer:
                 self._start_background(job)
             else:
                 self.say(f"evaluating the IDM baseline on the evaluation seeds ({servers} servers)")
-                self._set_idm_baseline(self._resilient(lambda: self._evaluate_blocking(job)))
+                summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
+                self._set_idm_baseline(summaries)
             self.collector.drop_episodes()
+        if self._restored_evaluation is not None:  # it was running when the run stopped
+            job = self._policy_job(*self._restored_evaluation)
+            self._restored_evaluation = None
+            if self._background() and not self._could_converge():
+                self._start_background(job)
+            else:
+                self._run_policy_evaluation(job, log)
         if self.config.pretrain_idm and self.progress.global_step == 0:
             self._resilient(self._pretrain)
 
@@ -398,6 +412,31 @@ class Trainer:
                 self.progress.failed_episodes += 1
                 self._drop_running()
                 self.say(f"the simulator failed ({exc}); starting new episodes")
+
+    def _resilient_evaluation(self, work: Callable[[], T]) -> T:
+        """`_resilient` for work on the evaluation servers: a failure there reconnects or
+        restarts only their workers, and training's episodes go on."""
+        pool = self.eval_pool
+        if pool is None:  # inline: the evaluation uses the training servers
+            return self._resilient(work)
+        failures = 0
+        while True:
+            try:
+                return work()
+            except ServerUnavailable as exc:
+                if self.retry_for_s <= 0:
+                    raise
+                self.say(f"{exc}; waiting up to {self.retry_for_s:g} s for the evaluation servers")
+                pool.reconnect(self.retry_for_s)
+                self.progress.reconnects += 1
+                addresses = ", ".join(self.eval_servers)
+                self.say(f"reconnected to {addresses}; the evaluation starts again")
+            except ServerError as exc:
+                failures += 1
+                if exc.code not in EPISODE_FAILURES or failures >= MAX_FAILURES_IN_A_ROW:
+                    raise
+                self.progress.failed_episodes += 1
+                self.say(f"the simulator failed in an evaluation ({exc}); it starts again")
 
     def _drop_running(self) -> None:
         """Forget the training episodes under way (a background evaluation the failure ended
@@ -504,35 +543,49 @@ class Trainer:
         return self.agent.policy_state_dict(self.config.deploy_averaged)
 
     def _start_policy_evaluation(self, log: RunLog) -> None:
-        """Evaluate the current policy: in the background, its verdict read `eval_every`
-        episodes on, or now while training waits (inline, with `eval_while_training` off, or
-        when a pass would complete convergence)."""
+        """Evaluate the current policy: in the background, its verdict read where the next
+        evaluation may be due, or now while training waits (inline, with `eval_while_training`
+        off, or when a pass would complete convergence)."""
         self._evaluation_wanted = False
         if self._pending is not None:  # IDM's baseline, or a verdict due at this episode
             self._collect(log)
         progress, every = self.progress, self.config.eval_every
-        state = self._policy_state()
-        driver = PolicyDriver(Policy.from_state_dict(state), self.features, self.scale, self.lanes)
         context = {
             "episode": progress.episode,
             "global_step": progress.global_step,
-            "policy_state": state,
-            "evaluation_seconds_before": self.profile.evaluation_seconds,
             # The next episode at which another evaluation may be due: its verdict (and the
             # budget's wait it sets) must be known there. One the gate or the budget held back
             # started after a multiple of `eval_every`, and the next is due sooner.
             "collect_at": (progress.episode // every + 1) * every,
         }
+        job = self._policy_job(self._policy_state(), context)
+        if self._background() and not self._could_converge():
+            self._start_background(job)
+        else:
+            self._run_policy_evaluation(job, log)
+
+    def _policy_job(self, state: dict[str, Any], context: dict[str, Any]) -> EvaluationJob:
+        """The evaluation of policy `state` on the held-out seeds (`context`: the episode and
+        the env step it was taken at, and where its verdict is due)."""
+        driver = PolicyDriver(Policy.from_state_dict(state), self.features, self.scale, self.lanes)
         seeds = self._eval_seeds()
         screen = self._screen(len(seeds)) if self.config.eval_screen else None
-        job = EvaluationJob("policy", driver, seeds, context, stop_on_collision=True, screen=screen)
-        could_converge = progress.converged_episode is None and (
+        context = {**context, "policy_state": state,
+                   "evaluation_seconds_before": self.profile.evaluation_seconds}  # fmt: skip
+        return EvaluationJob(
+            "policy", driver, seeds, context, stop_on_collision=True, screen=screen
+        )
+
+    def _could_converge(self) -> bool:
+        """Whether a pass now would complete convergence (then training waits for it, so that
+        convergence is declared where a blocking evaluation would declare it)."""
+        progress = self.progress
+        return progress.converged_episode is None and (
             progress.passed_in_a_row + 1 >= self.config.converged_evals
         )
-        if self._background() and not could_converge:
-            self._start_background(job)
-            return
-        summaries = self._resilient(lambda: self._evaluate_blocking(job))
+
+    def _run_policy_evaluation(self, job: EvaluationJob, log: RunLog) -> None:
+        summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
         if not self.eval_servers:
             self.collector.drop_episodes()  # the evaluation used the training servers
         self._evaluation_done(job, summaries, log)
@@ -554,9 +607,17 @@ class Trainer:
         return self.eval_pool is not None and self.config.eval_while_training
 
     def _start_background(self, job: EvaluationJob) -> None:
+        """Hand `job` to the pool's workers (training waits while they take its driver)."""
         pool = self.eval_pool
         assert pool is not None
-        self._resilient(lambda: pool.start(job))
+        started = time.perf_counter()
+        try:
+            self._resilient_evaluation(lambda: pool.start(job))
+        finally:
+            waited = time.perf_counter() - started
+            self.profile.blocking_evaluation += waited
+            if job.name == "idm":
+                self.profile.baseline_evaluation += waited
         self._pending = job
 
     def _poll_background(self) -> None:
@@ -577,7 +638,7 @@ class Trainer:
         """Wait for the background evaluation's end and book its verdict."""
         job = self._pending
         assert job is not None
-        summaries = self._resilient(lambda: self._evaluate_blocking(job))
+        summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
         self._pending = None
         self._evaluation_done(job, summaries, log)
 
@@ -699,8 +760,19 @@ class Trainer:
             "idm_speeds": self.idm_speeds,
             "idm_ceilings": self.idm_ceilings,
             "config": self.config.to_dict(),
+            "running_evaluation": self._running_evaluation(),
         }
         save_checkpoint(self.out / "checkpoint.pt", state)
+
+    def _running_evaluation(self) -> dict[str, Any] | None:
+        """The policy evaluation under way in the background (its policy and context), which a
+        resumed run starts again: else it would resume without the verdict blocking gives."""
+        job = self._pending
+        if job is None or job.name != "policy":
+            return None  # IDM's baseline runs again anyway: the checkpoint has none
+        keep = ("episode", "global_step", "collect_at")
+        return {"policy_state": job.context["policy_state"],
+                "context": {key: job.context[key] for key in keep}}  # fmt: skip
 
     def _restore(self) -> None:
         state = load_checkpoint(self.out / "checkpoint.pt")
@@ -721,6 +793,9 @@ class Trainer:
         self.idm_eval = state["idm_eval"]
         self.idm_speeds = state.get("idm_speeds") or []
         self.idm_ceilings = state.get("idm_ceilings")
+        running = state.get("running_evaluation")
+        if running is not None and self.idm_eval is not None and self.config.eval_every > 0:
+            self._restored_evaluation = (running["policy_state"], running["context"])
         self.say(
             f"resumed {self.out} at episode {self.progress.episode}, "
             f"step {self.progress.global_step}, {len(self.buffer)} transitions in the buffer"
@@ -733,6 +808,7 @@ class Trainer:
 
         def on_signal(signum: int, frame: FrameType | None) -> None:
             self.request_stop()
+            self._interrupted = True  # the user is waiting: a background evaluation is given up
             if signum == signal.SIGINT:
                 signal.signal(signal.SIGINT, previous[signal.SIGINT])
 

@@ -1,5 +1,6 @@
-"""`Evaluator`: greedy evaluations over held-out seeds on one or several servers, all at once
-or one step per training iteration, against conforming in-process servers (fake backend)."""
+"""`Evaluator`: greedy evaluations over held-out seeds on one or several servers, driven in
+lock-step (`run`, or `send`/`receive` step by step), against conforming in-process servers
+(fake backend)."""
 
 from __future__ import annotations
 
