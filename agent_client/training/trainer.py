@@ -307,11 +307,11 @@ class Trainer:
             self.collector.drop_episodes()
         if self._restored_evaluation is not None:  # it was running when the run stopped
             job = self._policy_job(*self._restored_evaluation)
-            self._restored_evaluation = None
             if self._background() and not self._could_converge():
                 self._start_background(job)
             else:
                 self._run_policy_evaluation(job, log)
+            self._restored_evaluation = None  # a checkpoint before this keeps it
         if self.config.pretrain_idm and self.progress.global_step == 0:
             self._resilient(self._pretrain)
 
@@ -419,12 +419,13 @@ class Trainer:
         pool = self.eval_pool
         if pool is None:  # inline: the evaluation uses the training servers
             return self._resilient(work)
-        failures = 0
+        failures = 0  # the same policy on the same seeds: a failure that repeats is not luck
         while True:
             try:
                 return work()
             except ServerUnavailable as exc:
-                if self.retry_for_s <= 0:
+                failures += 1
+                if self.retry_for_s <= 0 or failures >= MAX_FAILURES_IN_A_ROW:
                     raise
                 self.say(f"{exc}; waiting up to {self.retry_for_s:g} s for the evaluation servers")
                 pool.reconnect(self.retry_for_s)
@@ -454,7 +455,7 @@ class Trainer:
         log.episode(row)
         self.reporter.episode(row)
         self._recent_collisions.append(int(row["collisions"]) > 0)
-        pending = self._pending
+        pending = None if self._interrupted else self._pending  # Ctrl-C: no more waiting
         if pending is not None and progress.episode >= pending.context.get("collect_at", math.inf):
             self._collect(log)  # before the next is due: its verdict decides when that one runs
         every = self.config.eval_every
@@ -465,7 +466,7 @@ class Trainer:
             self._evaluation_due = True
         if self._evaluation_due and self._gate_open() and self._within_budget():
             self._evaluation_due, self._evaluation_wanted = False, True
-        if self._evaluation_wanted:
+        if self._evaluation_wanted and not self._interrupted:
             self._start_policy_evaluation(log)
         if progress.episode % self.config.checkpoint_every == 0:
             self._checkpoint()
@@ -768,6 +769,9 @@ class Trainer:
         """The policy evaluation under way in the background (its policy and context), which a
         resumed run starts again: else it would resume without the verdict blocking gives."""
         job = self._pending
+        if job is None and self._restored_evaluation is not None:  # not started again yet
+            state, context = self._restored_evaluation
+            return {"policy_state": state, "context": context}
         if job is None or job.name != "policy":
             return None  # IDM's baseline runs again anyway: the checkpoint has none
         keep = ("episode", "global_step", "collect_at")

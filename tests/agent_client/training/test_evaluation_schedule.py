@@ -101,13 +101,16 @@ def test_a_background_evaluation_whose_worker_died_runs_again_when_its_verdict_i
                               retry_for_s=5.0, eval_servers=[evaluate.address])  # fmt: skip
             pool = trainer.eval_pool
             assert pool is not None
+            said: list[str] = []
+            trainer.say = said.append  # type: ignore[method-assign]
             if name == "disturbed":
                 poll = pool.poll
 
                 def kill_once(pool: EvaluationPool = pool, poll: Any = poll) -> bool:
                     """The first policy evaluation's worker dies under it (SIGKILL)."""
                     job = pool.job
-                    if job is not None and job.name == "policy" and not killed:
+                    # While a seed is still to come: the death cannot go unseen.
+                    if job is not None and job.name == "policy" and pool._queue and not killed:
                         killed.append(int(job.context["episode"]))
                         pool.workers[0].process.kill()
                         pool.workers[0].process.wait(5.0)
@@ -119,6 +122,8 @@ def test_a_background_evaluation_whose_worker_died_runs_again_when_its_verdict_i
             finally:
                 trainer.close()
             runs[name] = trainer
+            if name == "disturbed":
+                assert any("the background evaluation failed" in text for text in said), said
     assert killed, "no policy evaluation ran in the background"
     assert runs["disturbed"].progress.reconnects >= 1  # its worker was replaced
     timing = {"wall_time", "seconds", "evaluation_share"}
