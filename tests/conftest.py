@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -16,6 +17,14 @@ import pytest
 from sim_server.serve import readiness
 
 READY_TIMEOUT_S = 60.0
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Ctrl-C reaches the tests, and the processes they start, even where pytest was started
+    with SIGINT ignored (a background job of a non-interactive shell, `cmd &`): the tests of
+    Ctrl-C send it themselves, and a child inherits an ignored SIGINT but not a handler."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @dataclass
