@@ -219,8 +219,8 @@ class Trainer:
         """An evaluation is due but waits for the gate or for `eval_budget`."""
         self._failures_in_a_row = 0
         self._recent_collisions: deque[bool] = deque(maxlen=max(config.eval_gate, 1))
-        self._restored_evaluation: tuple[dict[str, Any], dict[str, Any]] | None = None
-        """A resumed run's evaluation that was under way when it stopped: (policy, context)."""
+        self._restored_evaluation: dict[str, Any] | None = None
+        """A resumed run's evaluation that was under way when it stopped (`_running_evaluation`)."""
         self._pending: EvaluationJob | None = None
         """The evaluation running in the background (its verdict due at episode
         ``context["collect_at"]``; IDM's baseline before the first policy evaluation)."""
@@ -305,12 +305,9 @@ class Trainer:
                 summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
                 self._set_idm_baseline(summaries)
             self.collector.drop_episodes()
-        if self._restored_evaluation is not None:  # it was running when the run stopped
-            job = self._policy_job(*self._restored_evaluation)
-            if self._background() and not self._could_converge():
-                self._start_background(job)
-            else:
-                self._run_policy_evaluation(job, log)
+        running = self._restored_evaluation
+        if running is not None:  # it was under way when the run stopped
+            self._evaluate(self._policy_job(running["policy_state"], running["context"]), log)
             self._restored_evaluation = None  # a checkpoint before this keeps it
         if self.config.pretrain_idm and self.progress.global_step == 0:
             self._resilient(self._pretrain)
@@ -559,11 +556,17 @@ class Trainer:
             # started after a multiple of `eval_every`, and the next is due sooner.
             "collect_at": (progress.episode // every + 1) * every,
         }
-        job = self._policy_job(self._policy_state(), context)
+        self._evaluate(self._policy_job(self._policy_state(), context), log)
+
+    def _evaluate(self, job: EvaluationJob, log: RunLog) -> None:
+        """Start policy evaluation `job` in the background, or run and book it now."""
         if self._background() and not self._could_converge():
             self._start_background(job)
-        else:
-            self._run_policy_evaluation(job, log)
+            return
+        summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
+        if not self.eval_servers:
+            self.collector.drop_episodes()  # the evaluation used the training servers
+        self._evaluation_done(job, summaries, log)
 
     def _policy_job(self, state: dict[str, Any], context: dict[str, Any]) -> EvaluationJob:
         """The evaluation of policy `state` on the held-out seeds (`context`: the episode and
@@ -585,12 +588,6 @@ class Trainer:
             progress.passed_in_a_row + 1 >= self.config.converged_evals
         )
 
-    def _run_policy_evaluation(self, job: EvaluationJob, log: RunLog) -> None:
-        summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
-        if not self.eval_servers:
-            self.collector.drop_episodes()  # the evaluation used the training servers
-        self._evaluation_done(job, summaries, log)
-
     def _screen(self, seeds: int) -> FailureScreen | None:
         """What lets an evaluation stop once it has certainly failed: the scenario's time limit
         bounds an episode's steps, and on one lane IDM's ceilings bound every seed's speed."""
@@ -611,14 +608,8 @@ class Trainer:
         """Hand `job` to the pool's workers (training waits while they take its driver)."""
         pool = self.eval_pool
         assert pool is not None
-        started = time.perf_counter()
-        try:
+        with self._training_waits(job):
             self._resilient_evaluation(lambda: pool.start(job))
-        finally:
-            waited = time.perf_counter() - started
-            self.profile.blocking_evaluation += waited
-            if job.name == "idm":
-                self.profile.baseline_evaluation += waited
         self._pending = job
 
     def _poll_background(self) -> None:
@@ -647,13 +638,19 @@ class Trainer:
         """Run `job` to its end (or wait for its end, if it runs in the background) while
         training waits: on the evaluation servers' workers, else in lock-step on the training
         servers."""
-        started = time.perf_counter()
-        try:
+        with self._training_waits(job):
             if self.eval_pool is None:
                 return Evaluator(self.vec.envs).run(job)
             if self.eval_pool.job is job:
                 return self.eval_pool.finish()
             return self.eval_pool.run(job)  # from its start: a failure ended it in the background
+
+    @contextmanager
+    def _training_waits(self, job: EvaluationJob) -> Iterator[None]:
+        """Book the time training waits for `job` (IDM's baseline apart, too)."""
+        started = time.perf_counter()
+        try:
+            yield
         finally:
             waited = time.perf_counter() - started
             self.profile.blocking_evaluation += waited
@@ -770,8 +767,7 @@ class Trainer:
         resumed run starts again: else it would resume without the verdict blocking gives."""
         job = self._pending
         if job is None and self._restored_evaluation is not None:  # not started again yet
-            state, context = self._restored_evaluation
-            return {"policy_state": state, "context": context}
+            return self._restored_evaluation
         if job is None or job.name != "policy":
             return None  # IDM's baseline runs again anyway: the checkpoint has none
         keep = ("episode", "global_step", "collect_at")
@@ -799,7 +795,7 @@ class Trainer:
         self.idm_ceilings = state.get("idm_ceilings")
         running = state.get("running_evaluation")
         if running is not None and self.idm_eval is not None and self.config.eval_every > 0:
-            self._restored_evaluation = (running["policy_state"], running["context"])
+            self._restored_evaluation = running
         self.say(
             f"resumed {self.out} at episode {self.progress.episode}, "
             f"step {self.progress.global_step}, {len(self.buffer)} transitions in the buffer"
