@@ -11,8 +11,9 @@ DEFAULT_SCENARIO = "cf"
 
 STEP_TIMEOUT_S = 10.0
 """Seconds to wait for the reply to a hello or a step."""
-RESET_TIMEOUT_S = 120.0
-"""Seconds to wait for the reply to a reset (a reset may build a network and warm up)."""
+RESET_TIMEOUT_S = 300.0
+"""Seconds to wait for the reply to a reset: it may build a network, warm a large one up and
+wait for the ego to enter."""
 CLOSE_TIMEOUT_S = 1.0
 """Seconds to wait for the goodbye of a server that may be gone."""
 

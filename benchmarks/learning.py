@@ -1,4 +1,5 @@
-"""How fast does the learner reach the targets on `cf` (or `cflc`)? Prints a table, writes JSON.
+"""How fast does the learner reach the targets on `cf` (or `cflc`, or several scenarios at once)?
+Prints a table, writes JSON.
 
 For each reward and training seed: start a real SUMO server on a free loopback port, train from
 scratch with the recommended configuration (plus any --set), evaluate greedily every
@@ -10,6 +11,7 @@ in a row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of lead
 
     python benchmarks/learning.py --rewards safe ra3 --seeds 0 1 2 --minutes 15
     python benchmarks/learning.py --rewards safe --seeds 0 1 2 --minutes 3 --config configs/cf.toml
+    python benchmarks/learning.py --scenario merge exit lanedrop cflc --rewards safe --minutes 15
 
 With --without-evaluations each converged seed is trained again to the episode where it
 converged, without evaluations: the same training (evaluations on servers of their own do not
@@ -200,7 +202,9 @@ def evaluation_parts(profile: Profile, evaluations: list[dict[str, Any]]) -> dic
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenario", default="cf")
+    parser.add_argument(
+        "--scenario", nargs="+", default=["cf"], help="one scenario, or several: one policy"
+    )
     parser.add_argument("--rewards", nargs="+", default=["safe", "ra3"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--minutes", type=float, default=15.0, help="time budget per run")
@@ -248,7 +252,7 @@ def main() -> int:
         config = apply_overrides(
             TrainConfig(),
             {
-                "scenario": args.scenario,
+                "scenario": args.scenario[0] if len(args.scenario) == 1 else args.scenario,
                 "reward": reward,
                 "seed": seed,
                 "episodes": args.episodes,
@@ -273,8 +277,8 @@ def main() -> int:
     for reward in args.rewards:
         for seed in args.seeds:
             config = configs[reward, seed]
-            print(f"== {args.scenario} reward={reward} seed={seed}", flush=True)
-            folder = args.out / f"{args.scenario}-{reward}-{seed}"
+            print(f"== {config.label} reward={reward} seed={seed}", flush=True)
+            folder = args.out / f"{config.label}-{reward}-{seed}"
             result = run_one(
                 config, folder, args.minutes, args.verbose, args.servers, args.eval_servers
             )
@@ -288,11 +292,12 @@ def main() -> int:
     print()
     print(table(results))
     machine = f"{platform.node()} {platform.machine()}, {platform.python_version()}"
-    payload = {"scenario": args.scenario, "machine": machine, "config": config_file,
+    label = "+".join(args.scenario)
+    payload = {"scenario": label, "machine": machine, "config": config_file,
                "settings": args.set, "results": results}  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"learning-{args.scenario}.json").write_text(json.dumps(payload, indent=2))
-    print(f"\nwrote {args.out / f'learning-{args.scenario}.json'}")
+    (args.out / f"learning-{label}.json").write_text(json.dumps(payload, indent=2))
+    print(f"\nwrote {args.out / f'learning-{label}.json'}")
     return 0
 
 

@@ -90,12 +90,15 @@ _MAP16 = struct.Struct(">H")
 
 
 _NIL_TAILS: dict[type, tuple[tuple[str, bytes], ...]] = {
-    Observation: tuple((name, msgpack.packb(name) + b"\xc0") for name in ("traffic", "safety")),
+    Observation: tuple(
+        (name, msgpack.packb(name) + b"\xc0") for name in ("road", "traffic", "safety")
+    ),
     MultiObservation: ((("traffic", msgpack.packb("traffic") + b"\xc0")),),
 }
-"""The trailing optional fields (last first) of 1.3 that `encode` leaves out when nil, with their
-packed ``key: nil`` entries: a 1.2 peer's frame and ours are then the same bytes, and keep the
-fast path on both sides. Only for fixmaps (fewer than 15 fields), whose count is in byte 0."""
+"""The trailing optional fields (last first) of 1.3 and 1.6 that `encode` leaves out when nil,
+with their packed ``key: nil`` entries: a 1.2 peer's frame and ours are then the same bytes, and
+keep the fast path on both sides. Only for fixmaps (fewer than 15 fields), whose count is in
+byte 0."""
 
 _TYPE_ENTRIES = {
     cls: msgpack.packb("type") + msgpack.packb(cls.TYPE) for cls in REQUEST_TYPES + REPLY_TYPES

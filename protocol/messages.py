@@ -17,6 +17,10 @@ from typing import ClassVar
 
 OptionValue = bool | int | float | str | None
 
+ROAD_RANGE = 1000.0
+"""Metres of road ahead that `Road` describes: a lane that goes on farther along the ego's route,
+or reaches its end, is reported at this distance (since protocol 1.6)."""
+
 
 class LaneChange(IntEnum):
     """Lane-change command of a step: -1 right, 0 keep, +1 left (the paper's RLC/LK/LLC)."""
@@ -37,6 +41,9 @@ class EndReason(StrEnum):
     """The simulator lost the ego without an arrival (a teleport, a removal)."""
     TIME_LIMIT = "time_limit"
     """The only reason of a truncated episode: every other one terminates it."""
+    LANE_END = "lane_end"
+    """Stood at the end of a lane that does not continue its route, for ``lane_end_patience``
+    seconds: a merge not made, an exit missed (since protocol 1.6)."""
 
     @property
     def terminates(self) -> bool:
@@ -371,12 +378,39 @@ class Safety:
 
 
 @dataclass(frozen=True, slots=True)
+class Road:
+    """The road ahead of the ego along its route (since protocol 1.6): where its lane ends, and
+    which lanes lead on.
+
+    A lane "ends" where the ego can no longer drive on in it (and the lanes it leads into)
+    without leaving its route: the end of an acceleration lane, a lane drop, a lane that does
+    not lead to the ego's exit. Distances are from the ego's front; a lane that goes on for
+    `ROAD_RANGE` or farther, or to the end of the route, is reported at `ROAD_RANGE`.
+    """
+
+    lane_end: float
+    """Metres the ego can still drive in its lane before it must have changed lanes."""
+    lanes_to_change: int
+    """Lanes to cross to the nearest lane of its road that leads on along its route: positive
+    to the left, negative to the right, 0 when its own lane does."""
+    left_lane_end: float
+    """`lane_end` of the lane to the ego's left; 0 where there is none."""
+    right_lane_end: float
+    """`lane_end` of the lane to the ego's right; 0 where there is none."""
+
+
+OPEN_ROAD = Road(ROAD_RANGE, 0, ROAD_RANGE, ROAD_RANGE)
+"""A road whose lanes all lead on beyond `ROAD_RANGE` (beside a lane on each side)."""
+
+
+@dataclass(frozen=True, slots=True)
 class Observation:
     """Recognition state of the ego after a reset (seq 0) or a step (the step's seq).
 
     `reason` says why an episode ended (an `EndReason`, a plain string on the wire), or is ""
     while it runs. `ceiling` is set on the last observation of an episode, and so is `safety`
-    when asked for; `traffic` is on every observation when asked for (protocol 1.3).
+    when asked for; `traffic` is on every observation when asked for (protocol 1.3). `road` is
+    the road ahead of the ego (protocol 1.6; None from older servers).
     """
 
     TYPE: ClassVar[str] = "observation"
@@ -392,6 +426,7 @@ class Observation:
     ceiling: LeaderTrip | None = None
     safety: Safety | None = None
     traffic: Traffic | None = None
+    road: Road | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -400,7 +435,8 @@ class EgoObservation:
     the episode's clock, for the ego `id`.
 
     `terminated`, `truncated` and `reason` are the ego's own: an ego whose drive ended
-    (collision, end of road, lost, stopped, time limit) is reported once so, then removed.
+    (collision, end of road, lost, stopped, lane end, time limit) is reported once so, then
+    removed. `road` as in `Observation` (protocol 1.6).
     """
 
     id: str
@@ -411,6 +447,7 @@ class EgoObservation:
     terminated: bool = False
     truncated: bool = False
     reason: str = ""
+    road: Road | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -431,6 +468,20 @@ class MultiObservation:
     truncated: bool = False
     reason: str = ""
     traffic: Traffic | None = None
+
+
+def road_ahead(obs: Observation) -> Road:
+    """`obs.road`, or for an observation without one (from a server older than 1.6) the open
+    road: every lane leads on beyond `ROAD_RANGE`, a lane on a side where the road has one."""
+    road = obs.road
+    if road is not None:
+        return road
+    ego = obs.ego
+    if ego.lane > 0 and ego.lane < ego.lane_count - 1:
+        return OPEN_ROAD
+    left = ROAD_RANGE if ego.lane < ego.lane_count - 1 else 0.0
+    right = ROAD_RANGE if ego.lane > 0 else 0.0
+    return Road(ROAD_RANGE, 0, left, right)
 
 
 Request = Hello | Reset | Step | MultiStep | Close

@@ -1,8 +1,10 @@
 """The flat observation vector: every field's name, unit, meaning and order.
 
-The server announces `OBSERVATION_FIELDS` in its `Welcome`; a client turns each named
-`Observation` into a vector in exactly that order with `Flattener`. Absent neighbours contribute
-``present = 0``, ``gap = sensor range``, ``lateral = 0`` and ``speed = 0``.
+The server announces `OBSERVATION_FIELDS` in its `Welcome` (to a client older than 1.6, the
+fields of its version: `fields_for`); a client turns each named `Observation` into a vector in
+exactly that order with `Flattener`. Absent neighbours contribute ``present = 0``, ``gap = sensor
+range``, ``lateral = 0`` and ``speed = 0``; an observation without `road` (an older server's) the
+open road: every lane leads on (`road_ahead`).
 """
 
 from __future__ import annotations
@@ -10,7 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from operator import attrgetter
 
-from protocol.messages import FieldSpec, Observation
+from protocol.messages import FieldSpec, Observation, road_ahead
+from protocol.version import ROAD_VERSION
 
 NEIGHBOUR_SLOTS: tuple[str, ...] = (
     "left_leader",
@@ -54,6 +57,28 @@ def _leader_speed_diff(obs: Observation) -> float:
     return obs.ego.speed - leader.speed if leader.present else 0.0
 
 
+_ROAD_FIELDS: list[tuple[FieldSpec, Getter]] = [
+    (
+        FieldSpec("lane_end", "m", "distance the ego can drive on in its lane along its route"),
+        lambda o: road_ahead(o).lane_end,
+    ),
+    (
+        FieldSpec(
+            "lanes_to_change", "1", "lanes to cross to a lane that leads on (left +, right -)"
+        ),
+        lambda o: road_ahead(o).lanes_to_change,
+    ),
+    (
+        FieldSpec("left_lane_end", "m", "lane_end of the lane to the left (0: no lane)"),
+        lambda o: road_ahead(o).left_lane_end,
+    ),
+    (
+        FieldSpec("right_lane_end", "m", "lane_end of the lane to the right (0: no lane)"),
+        lambda o: road_ahead(o).right_lane_end,
+    ),
+]
+"""The road ahead (since 1.6), after the 32 fields of 1.0."""
+
 _FIELDS: list[tuple[FieldSpec, Getter]] = [
     (FieldSpec("time", "s", "simulation time"), lambda o: o.time),
     (FieldSpec("ego_speed", "m/s", "speed of the ego"), lambda o: o.ego.speed),
@@ -75,10 +100,20 @@ _FIELDS: list[tuple[FieldSpec, Getter]] = [
         _leader_speed_diff,
     ),
     *_neighbour_fields(),
+    *_ROAD_FIELDS,
 ]
 
 OBSERVATION_FIELDS: tuple[FieldSpec, ...] = tuple(spec for spec, _ in _FIELDS)
 """The canonical flat vector, in order."""
+
+_BEFORE_ROAD = len(OBSERVATION_FIELDS) - len(_ROAD_FIELDS)
+
+
+def fields_for(version: tuple[int, int]) -> tuple[FieldSpec, ...]:
+    """The flat vector a client of protocol `version` knows (a client refuses a field it does
+    not know): the 32 fields of 1.0 before 1.6, then the road's four too."""
+    return OBSERVATION_FIELDS if version >= ROAD_VERSION else OBSERVATION_FIELDS[:_BEFORE_ROAD]
+
 
 _GETTERS: dict[str, Getter] = {spec.name: getter for spec, getter in _FIELDS}
 

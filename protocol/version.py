@@ -18,6 +18,10 @@ Revision history:
     1.5  Egos as a share of the traffic: a reset that names the option ``ego_share`` hands that
          share of the vehicles over, and the vehicles that enter later join the episode at the
          same share (a frame lists a joining ego after those that drove into the step).
+    1.6  The road ahead: `observation.road` (and each ego's in a `multi_observation`): where
+         the ego's lane ends along its route, which way and how many lanes lead on, and where
+         the lanes beside it end; four fields of the flat vector, announced to 1.6 clients
+         only; the end reason ``lane_end``.
 
 The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
 
@@ -27,13 +31,16 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 5)
+PROTOCOL_VERSION: tuple[int, int] = (1, 6)
 
 MANY_EGOS_VERSION: tuple[int, int] = (1, 4)
 """The first version with many egos in one simulation (`multi_step`, `multi_observation`)."""
 
 EGO_SHARE_VERSION: tuple[int, int] = (1, 5)
 """The first version with egos as a share of the traffic (``ego_share``, egos joining)."""
+
+ROAD_VERSION: tuple[int, int] = (1, 6)
+"""The first version with the road ahead (`Road`, the ``lane_end`` end reason)."""
 
 
 def format_version(version: tuple[int, int]) -> str:

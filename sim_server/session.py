@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import secrets
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES, decode_request, encode
 from protocol.errors import ErrorCode, ProtocolError
@@ -28,14 +28,17 @@ from protocol.messages import (
     Step,
     Welcome,
 )
-from protocol.schema import OBSERVATION_FIELDS
-from protocol.version import PROTOCOL_VERSION, format_version, is_compatible
+from protocol.schema import OBSERVATION_FIELDS, fields_for
+from protocol.version import PROTOCOL_VERSION, ROAD_VERSION, format_version, is_compatible
 from sim_server import __version__
 from sim_server.backends.base import Backend
 from sim_server.backends.options import merge_options
 from sim_server.errors import BackendError
 
 log = logging.getLogger("sim_server")
+
+_BEFORE_ROAD = (ROAD_VERSION[0], ROAD_VERSION[1] - 1)
+"""The last version whose flat vector has no road fields."""
 
 DEFAULT_SESSION_TIMEOUT_S = 600.0
 """Silence after which another client may take over a client that is still connected."""
@@ -77,7 +80,12 @@ class Session:
             sensor_range=backend.sensor_range,
             max_frame_bytes=max_frame_bytes,
         )
-        self._welcome = encode(backend.welcome(ours))
+        welcome = backend.welcome(ours)
+        self._welcome = encode(welcome)
+        # A client refuses a flat-vector field it does not know: one older than 1.6 is
+        # announced the fields of its version (the named observation it reads either way).
+        older = replace(welcome, observation_fields=fields_for(_BEFORE_ROAD))
+        self._welcome_before_road = encode(older) if welcome is ours else self._welcome
         self.owner: bytes | None = None
         self.owner_connected = False
         self._last_seen = 0.0
@@ -166,7 +174,7 @@ class Session:
             log.info("hello from %s", _printable(hello.client) or "an unnamed client")
         self.owner = peer
         self._episode = None
-        return self._welcome
+        return self._welcome if hello.protocol >= ROAD_VERSION else self._welcome_before_road
 
     def _reset(self, reset: Reset) -> bytes:
         info = self._scenarios.get(reset.scenario)

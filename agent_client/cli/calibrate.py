@@ -86,7 +86,13 @@ def run(args: argparse.Namespace) -> int:
 
     scenario = args.scenario or DEFAULT_SCENARIO
     seeds = list(range(args.seed, args.seed + args.episodes))
-    env = RemoteEnv(args.server, scenario, timeout_s=args.timeout, **dict(args.option))
+    env = RemoteEnv(
+        args.server,
+        scenario,
+        timeout_s=args.timeout,
+        reset_timeout_s=args.reset_timeout,
+        **dict(args.option),
+    )
     try:
         recording_options(env, args.source)  # a scenario that cannot be recorded: say so now
         segments = _record(env, seeds, args.source)

@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agent_client.defaults import STEP_TIMEOUT_S
+from agent_client.defaults import RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.errors import UsageError
 from protocol.messages import OptionValue
 from protocol.transport.endpoint import DEFAULT_ADDRESS
@@ -36,7 +36,8 @@ def parse_option(text: str) -> tuple[str, OptionValue]:
 
 
 def add_connection_arguments(parser: argparse.ArgumentParser, several: bool = False) -> None:
-    """--server (repeatable with `several`), --scenario, --option and --timeout."""
+    """--server (repeatable with `several`), --scenario, --option, --timeout and
+    --reset-timeout."""
     if several:
         parser.add_argument(
             "--server",
@@ -48,7 +49,15 @@ def add_connection_arguments(parser: argparse.ArgumentParser, several: bool = Fa
         parser.add_argument(
             "--server", default=DEFAULT_ADDRESS, help=f"server address (default {DEFAULT_ADDRESS})"
         )
-    parser.add_argument("--scenario", help="scenario name (default cf)")
+    if several:
+        parser.add_argument(
+            "--scenario",
+            action="append",
+            help="scenario name (default cf); repeat it to train one policy on several, each "
+            "episode drawing one",
+        )
+    else:
+        parser.add_argument("--scenario", help="scenario name (default cf)")
     parser.add_argument(
         "--option",
         action="append",
@@ -62,6 +71,13 @@ def add_connection_arguments(parser: argparse.ArgumentParser, several: bool = Fa
         type=float,
         default=STEP_TIMEOUT_S,
         help=f"seconds to wait for a step reply (default {STEP_TIMEOUT_S:g})",
+    )
+    parser.add_argument(
+        "--reset-timeout",
+        type=float,
+        default=RESET_TIMEOUT_S,
+        help="seconds to wait for a reset reply: it builds the network, warms up and inserts "
+        f"the ego (default {RESET_TIMEOUT_S:g})",
     )
 
 

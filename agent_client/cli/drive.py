@@ -39,7 +39,7 @@ def add_parser(commands: Commands) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from agent_client.drivers.episode import drive
-    from agent_client.drivers.spec import load_driver, training_settings
+    from agent_client.drivers.spec import load_driver, trained_on, training_settings
     from agent_client.envs.remote_env import RemoteEnv
     from agent_client.evaluation.metrics import aggregate, episode_summary, format_summary
 
@@ -47,8 +47,8 @@ def run(args: argparse.Namespace) -> int:
     check_record_folder(args.record)
     driver = load_driver(args.policy)
     trained_scenario, trained_options = training_settings(args.policy)
-    scenario = args.scenario or trained_scenario or DEFAULT_SCENARIO
-    if scenario != trained_scenario:
+    scenario = args.scenario or trained_scenario or DEFAULT_SCENARIO  # several: drawn by seed
+    if not (scenario == trained_scenario or trained_on(trained_scenario, str(scenario))):
         trained_options = {}
     options = {**trained_options, **dict(args.option)}
     seeds = list(range(args.seed, args.seed + args.episodes))
@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
             scenario,
             reward=args.reward,
             timeout_s=args.timeout,
+            reset_timeout_s=args.reset_timeout,
             recorder=wire,
             **options,
         )

@@ -34,7 +34,14 @@ def add_parser(commands: Commands) -> None:
         "--policy", required=True, help="runs/NAME/policy.pt, idm or idm:PARAMS.json"
     )
     evaluate.add_argument(
-        "--baseline", default="idm", help="idm (default), idm:PARAMS.json or a policy file"
+        "--baseline",
+        default="idm",
+        help="idm (default), idm+mobil (lane changes: on roads with a lane end or an exit), "
+        "idm:PARAMS.json, sumo or a policy file",
+    )
+    evaluate.add_argument(
+        "--reference",
+        help="a second baseline on the same seeds, e.g. sumo (the simulator's own driver)",
     )
     evaluate.add_argument("--episodes", type=int, default=10, help="episodes per driver (10)")
     evaluate.add_argument(
@@ -80,6 +87,8 @@ def evaluation_command(args: argparse.Namespace, scenario: str, out: Path) -> st
             f"{name}={json.dumps(value) if not isinstance(value, str) else value}",
         ]
     parts += ["--policy", args.policy, "--baseline", args.baseline]
+    if args.reference is not None:
+        parts += ["--reference", args.reference]
     parts += ["--episodes", str(args.episodes), "--seed", str(args.seed), "--out", str(out)]
     if args.run_folder is not None:
         parts += ["--run", str(args.run_folder), "--table2-bins", str(args.table2_bins)]
@@ -91,23 +100,31 @@ def evaluation_command(args: argparse.Namespace, scenario: str, out: Path) -> st
 
 
 def default_out(policy: str) -> Path:
-    """``runs/NAME/eval`` next to a policy file; ``runs/eval-idm`` for IDM specs."""
-    from agent_client.drivers.spec import is_idm
+    """``runs/NAME/eval`` next to a policy file; ``runs/eval-MODEL`` for the model drivers
+    (``runs/eval-idm``, ``runs/eval-idm+mobil``, ``runs/eval-sumo``)."""
+    from agent_client.drivers.spec import is_model
 
-    if is_idm(policy):
-        return Path("runs") / "eval-idm"
+    if is_model(policy):
+        return Path("runs") / f"eval-{policy.split(':')[0]}"
     return Path(policy).parent / "eval"
 
 
 def run(args: argparse.Namespace) -> int:
-    from agent_client.drivers.spec import load_driver, training_settings
+    from agent_client.drivers.spec import load_driver, trained_on, training_settings
     from agent_client.envs.remote_env import RemoteEnv
+    from agent_client.errors import UsageError
     from agent_client.evaluation.report import check_trajectory_seeds, write_report
     from agent_client.training.run_log import EPISODE_CSV, read_rows
 
     trained_scenario, trained_options = training_settings(args.policy)
+    if args.scenario is None and isinstance(trained_scenario, list):
+        raise UsageError(
+            f"{args.policy} was trained on {', '.join(trained_scenario)}: evaluate it on one "
+            "at a time (--scenario NAME), each with its own report"
+        )
     scenario = args.scenario or trained_scenario or DEFAULT_SCENARIO
-    defaults = trained_options if scenario == trained_scenario else {}
+    assert isinstance(scenario, str)
+    defaults = trained_options if trained_on(trained_scenario, scenario) else {}
     options = {**defaults, **dict(args.option)}
     if defaults:
         print(f"the policy was trained with {defaults}: evaluating with them (--option overrides)")
@@ -117,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
     if args.trajectory_seeds is not None:
         check_trajectory_seeds(args.trajectory_seeds, seeds)
     specs = {"policy": args.policy, "baseline": args.baseline}
+    if args.reference is not None:
+        specs["reference"] = args.reference
     if args.cf_policy is not None:
         specs["cf_policy"] = args.cf_policy
     check_record_folder(args.record)
@@ -126,7 +145,14 @@ def run(args: argparse.Namespace) -> int:
         training_rows = read_rows(existing_folder(args.run_folder, "--run") / EPISODE_CSV)
     wire = open_recorder(args, scenario=scenario, options=options, seeds=seeds, drivers=specs)
     try:
-        env = RemoteEnv(args.server, scenario, timeout_s=args.timeout, recorder=wire, **options)
+        env = RemoteEnv(
+            args.server,
+            scenario,
+            timeout_s=args.timeout,
+            reset_timeout_s=args.reset_timeout,
+            recorder=wire,
+            **options,
+        )
         try:
             runs = _drive_all(env, drivers, specs, seeds)
             welcome, options = env.welcome, dict(env.options)
@@ -192,6 +218,7 @@ def _evaluation(
         policy=runs["policy"],
         baseline=runs["baseline"],
         cf_policy=runs.get("cf_policy"),
+        reference=runs.get("reference"),
         training_rows=training_rows,
         run_folder=str(args.run_folder) if args.run_folder is not None else None,
         table2_bins=args.table2_bins,
@@ -207,3 +234,11 @@ def _print_comparison(metrics: dict[str, Any]) -> None:
         f"m/s ({ratio_text}) | collisions/episode {policy['collisions_per_episode']:.2f} vs "
         f"{baseline['collisions_per_episode']:.2f}"
     )
+    routes = {r: d["route"] for r, d in metrics["drivers"].items() if d.get("route")}
+    if routes:
+        print(
+            "reached the end of the route: "
+            + ", ".join(
+                f"{role} {100 * route['arrival_share']:.0f}%" for role, route in routes.items()
+            )
+        )

@@ -122,7 +122,7 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         "egos": args.egos,
     }
     if args.scenario is not None:
-        flags["scenario"] = args.scenario
+        flags["scenario"] = args.scenario[0] if len(args.scenario) == 1 else args.scenario
     if args.option:
         flags["scenario_options"] = {**config.scenario_options, **dict(args.option)}
     config = apply_overrides(config, {k: v for k, v in flags.items() if v is not None})
@@ -181,16 +181,24 @@ def run(args: argparse.Namespace) -> int:
         out = args.resume
     else:
         config = build_config(args)
-        out = args.out or Path("runs") / f"{config.scenario}-{config.reward}-{config.seed}"
+        out = args.out or Path("runs") / f"{config.label}-{config.reward}-{config.seed}"
     reporter = BarReporter(config.episodes, 0, args.quiet)
     servers = args.server or [DEFAULT_ADDRESS]
     trainer = Trainer(
-        config, servers, out, args.timeout, reporter, args.retry_for, args.eval_server
+        config,
+        servers,
+        out,
+        args.timeout,
+        reporter,
+        args.retry_for,
+        args.eval_server,
+        reset_timeout_s=args.reset_timeout,
     )
     egos = f", {config.egos} egos per simulation" if config.egos > 1 else ""
     try:
         reporter.message(
-            f"training {config.learner.algo} on {config.scenario} with reward {config.reward} "
+            f"training {config.learner.algo} on {', '.join(config.scenarios)} with reward "
+            f"{config.reward} "
             f"({trainer.features.name} features, {trainer.agent.n_lane_actions} lane choices"
             f"{egos}) -> {out}"
         )

@@ -34,7 +34,10 @@ class Episode:
 
 
 class Driver(Protocol):
-    """Anything that maps a named observation to (acceleration m/s^2, lane change)."""
+    """Anything that maps a named observation to (acceleration m/s^2, lane change).
+
+    A driver may also name reset options its episodes need (`reset_options`): the simulator's
+    own driver asks for ``ego_driver``."""
 
     def act(self, obs: Observation) -> tuple[float, int]: ...
 
@@ -53,6 +56,9 @@ def run_episode(
     on_step: StepHook | None = None,
 ) -> Episode:
     """Drive one episode from reset to its end; returns every observation and reward."""
+    own = getattr(driver, "reset_options", None)
+    if own:
+        options = {**(options or {}), **own}
     env.send_reset(seed=seed, options=options)
     recorder = Episode(episode=episode, seed=seed, step_length=env.step_length)
     obs = env.receive_reset_observation()
@@ -82,3 +88,11 @@ class Idle:
 
     def act(self, obs: Observation) -> tuple[float, int]:
         return 0.0, 0
+
+
+class SimulatorDriver(Idle):
+    """The simulator's own driver model drives the ego (reset option ``ego_driver``); the client
+    watches: a reference to compare learned drivers with (``sumo`` as a driver spec)."""
+
+    name = "sumo"
+    reset_options: dict[str, OptionValue] = {"ego_driver": "sumo"}

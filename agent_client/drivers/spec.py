@@ -1,7 +1,14 @@
-"""Driver specs as users write them: ``idm``, ``idm:PARAMS.json`` or a policy file.
+"""Driver specs as users write them: ``idm``, ``idm+mobil``, ``sumo`` or a policy file.
 
-`load_driver` is the one parser of these specs (drive, evaluate, the baselines); every bad spec
-is a `UsageError` that names it, before any connection is opened.
+* ``idm`` / ``idm:PARAMS.json``: IDM keeping its lane (calibrated parameters from the file);
+* ``idm+mobil`` / ``idm+mobil:PARAMS.json``: IDM with MOBIL lane changes and the changes its
+  route needs (`agent_client.drivers.mobil`);
+* ``sumo``: the simulator's own driver model (the reset option ``ego_driver``; the client only
+  watches);
+* ``runs/NAME/policy.pt``: a trained policy.
+
+`load_driver` is the one parser of these specs (drive, evaluate, the baselines, the trainer's
+reference); every bad spec is a `UsageError` that names it, before any connection is opened.
 """
 
 from __future__ import annotations
@@ -11,30 +18,46 @@ import json
 from pathlib import Path
 from typing import Any
 
-from agent_client.drivers.episode import Driver
+from agent_client.drivers.episode import Driver, SimulatorDriver
 from agent_client.drivers.idm import IDMDriver, IDMParams
+from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.errors import UsageError
 
 IDM = "idm"
 IDM_PREFIX = "idm:"
+IDM_MOBIL = "idm+mobil"
+IDM_MOBIL_PREFIX = "idm+mobil:"
+SIMULATOR = "sumo"
+"""The simulator's own driver (SUMO's; highway-env accepts the name for its own)."""
+MODELS = (IDM, IDM_MOBIL, SIMULATOR)
+"""The driver specs that are models rather than files (``idm:FILE`` and ``idm+mobil:FILE``
+take calibrated IDM parameters)."""
 
 
-def is_idm(spec: str) -> bool:
-    """True for ``idm`` and ``idm:FILE``."""
-    return spec == IDM or spec.startswith(IDM_PREFIX)
+def is_model(spec: str) -> bool:
+    """True for the model drivers: ``idm``, ``idm+mobil`` (with or without a parameter file)
+    and ``sumo``: the specs that are no policy file."""
+    return spec in MODELS or spec.startswith((IDM_PREFIX, IDM_MOBIL_PREFIX))
 
 
 def load_driver(spec: str) -> Driver:
-    """A driver from ``idm``, ``idm:FILE.json`` (calibrated parameters) or a policy file."""
+    """A driver from a spec: ``idm``, ``idm+mobil`` (each also ``...:FILE.json``, calibrated
+    IDM parameters), ``sumo`` or a policy file."""
     if spec == IDM:
         return IDMDriver()
     if spec.startswith(IDM_PREFIX):
         return IDMDriver(load_idm_params(Path(spec[len(IDM_PREFIX) :])))
+    if spec == IDM_MOBIL:
+        return IDMMobilDriver()
+    if spec.startswith(IDM_MOBIL_PREFIX):
+        return IDMMobilDriver(load_idm_params(Path(spec[len(IDM_MOBIL_PREFIX) :])))
+    if spec == SIMULATOR:
+        return SimulatorDriver()
     path = Path(spec)
     if not path.is_file():
         raise UsageError(
-            f"driver {spec!r}: no such file; give idm, idm:PARAMS.json or a policy file "
-            "(runs/NAME/policy.pt)"
+            f"driver {spec!r}: no such file; give idm, idm+mobil, sumo (each idm one also "
+            "with :PARAMS.json) or a policy file (runs/NAME/policy.pt)"
         )
     from agent_client.drivers.policy import load_policy_driver
 
@@ -64,14 +87,15 @@ def load_idm_params(path: Path) -> IDMParams:
     return IDMParams(**params)
 
 
-def training_settings(spec: str) -> tuple[str | None, dict[str, Any]]:
-    """The scenario and reset options a policy file was trained with, from its run's config.json.
+def training_settings(spec: str) -> tuple[str | list[str] | None, dict[str, Any]]:
+    """The scenario (or scenarios) and reset options a policy file was trained with, from its
+    run's config.json.
 
     A policy trained with ``decision_interval`` 1.0 must also drive with it; drive and evaluate
-    use these as defaults (the command line overrides them). ``(None, {})`` for IDM specs and
-    policies without a run folder.
+    use these as defaults (the command line overrides them). ``(None, {})`` for the model
+    drivers and policies without a run folder.
     """
-    if is_idm(spec):
+    if is_model(spec):
         return None, {}
     config = Path(spec).parent / "config.json"
     if not config.is_file():
@@ -80,3 +104,8 @@ def training_settings(spec: str) -> tuple[str | None, dict[str, Any]]:
     options = {"decision_interval": saved.get("decision_interval", 0.1)}
     options.update(saved.get("scenario_options") or {})
     return saved.get("scenario"), options
+
+
+def trained_on(trained: str | list[str] | None, scenario: str) -> bool:
+    """Whether `scenario` is (one of) the scenario(s) a policy was trained on."""
+    return scenario == trained or (isinstance(trained, list) and scenario in trained)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -22,6 +22,7 @@ from gymnasium import spaces
 
 from agent_client.defaults import DEFAULT_SCENARIO, RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.envs.link import (
+    CheckedScenario,
     ObservationVector,
     RewardFn,
     check_scenario,
@@ -65,6 +66,10 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
     the first observation: asked for before any reset, ``action_space`` resets once to find
     out. `step` also takes the named form ``{"acceleration": [a], "lane_change": k}`` in m/s²
     whatever the space.
+
+    `scenario` may also be several scenarios of the server: each episode then drives the one its
+    seed picks (`scenario_for`), so that one policy learns them all and the same seed always
+    gives the same episode; an option goes to the scenarios that offer it.
     """
 
     metadata: dict[str, Any] = {"render_modes": []}
@@ -72,7 +77,7 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
     def __init__(
         self,
         address: str = DEFAULT_ADDRESS,
-        scenario: str = DEFAULT_SCENARIO,
+        scenario: str | Sequence[str] = DEFAULT_SCENARIO,
         *,
         reward: str | RewardFn = "safe",
         timeout_s: float = STEP_TIMEOUT_S,
@@ -97,8 +102,16 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         if acceleration_levels < 2:
             raise UsageError(f"acceleration_levels must be at least 2, got {acceleration_levels}")
         self.address = address
-        self.scenario = scenario
-        self.options = dict(options)
+        self.scenarios: tuple[str, ...] = (
+            (scenario,) if isinstance(scenario, str) else tuple(scenario)
+        )
+        """The scenarios episodes are drawn from (by seed), in order."""
+        if not self.scenarios or len(set(self.scenarios)) != len(self.scenarios):
+            raise UsageError(f"scenarios must be distinct and at least one, got {scenario!r}")
+        self.scenario = self.scenarios[0]
+        """The scenario of the running episode (or of the next, once `send_reset` picked it)."""
+        self.requested_options = dict(options)
+        """The options asked for, before each scenario takes those it offers (`options`)."""
         self.reset_timeout_s = reset_timeout_s
         self.reward_fn = resolve_reward(reward)
         self.timeout_s = timeout_s
@@ -107,12 +120,11 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         self._connection: Channel = self._connect()
         try:
             self.welcome: Welcome = self._connection.hello(timeout_s)
-            self.scenario_options = self._check_scenario()
+            self._checked = self._check_scenarios()
             self.flatten = self._check_schema()
         except Exception:
             self.close()  # free the server for the next client, then report
             raise
-        self.step_length = next(s.step_length for s in self.welcome.scenarios if s.name == scenario)
         self._action_space_name = action_space
         self._acceleration_levels = acceleration_levels
         self._encoding: ActionEncoding | None = None
@@ -150,8 +162,33 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
     def send_reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> None:
         super().reset(seed=seed)
         self._episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
-        request = Reset(self.scenario, self._episode_seed, {**self.options, **(options or {})})
+        self.scenario = self.scenario_for(self._episode_seed)
+        extra = options or {}
+        if len(self.scenarios) > 1:  # what this scenario offers of the caller's options
+            extra = {k: v for k, v in extra.items() if k in self.scenario_options}
+        request = Reset(self.scenario, self._episode_seed, {**self.options, **extra})
         self._connection.send(request)
+
+    def scenario_for(self, seed: int) -> str:
+        """The scenario an episode of `seed` drives: the only one, or of several the one at
+        `seed` modulo their number (an insertion retry keeps its episode's)."""
+        return self.scenarios[seed % len(self.scenarios)]
+
+    @property
+    def options(self) -> dict[str, OptionValue]:
+        """The options sent with every reset of the current scenario: those asked for that it
+        offers."""
+        return self._checked[self.scenario].options
+
+    @property
+    def scenario_options(self) -> dict[str, OptionValue]:
+        """Every option of the current scenario, its defaults overridden by `options`."""
+        return self._checked[self.scenario].all_options
+
+    @property
+    def step_length(self) -> float | None:
+        """The current scenario's simulation step (s)."""
+        return self._checked[self.scenario].info.step_length
 
     def receive_reset(self) -> tuple[np.ndarray, dict[str, Any]]:
         obs = self.receive_reset_observation()
@@ -252,16 +289,30 @@ class RemoteEnv(gym.Env[np.ndarray, Any]):
         """A fresh channel to the server, recorded from its first frame if asked."""
         return open_channel(self.address, self.timeout_s, self._credentials, self._recorder)
 
-    def _check_scenario(self) -> dict[str, OptionValue]:
-        """The scenario's full options. Refuses early: an unknown scenario or option
-        (`UsageError`), a welcome that breaks the protocol (`InvalidReply`); a 1.0/1.1 server
-        without a step length gets one assumed, with a warning (`replies.check_welcome`)."""
-        checked = check_scenario(self.welcome, self.address, self.scenario, self.options)
-        for note in checked.notes:
+    def _check_scenarios(self) -> dict[str, CheckedScenario]:
+        """Each scenario as checked against the welcome. Refuses early: an unknown scenario or
+        option (`UsageError`: of several scenarios, an option none of them offers), a welcome
+        that breaks the protocol (`InvalidReply`); a 1.0/1.1 server without a step length gets
+        one assumed, with a warning (`replies.check_welcome`)."""
+        asked, checked = self.requested_options, {}
+        for name in self.scenarios:
+            wanted = asked
+            if len(self.scenarios) > 1:
+                offered = next((s.options for s in self.welcome.scenarios if s.name == name), {})
+                wanted = {k: v for k, v in asked.items() if k in offered}
+            checked[name] = check_scenario(self.welcome, self.address, name, wanted)
+        offered_by_some = set().union(*(c.info.options for c in checked.values()))
+        unknown = sorted(set(asked) - offered_by_some - {"decision_interval"})
+        if unknown:
+            raise UsageError(
+                f"no scenario of {', '.join(self.scenarios)} has option {unknown[0]!r}; "
+                f"known: {', '.join(sorted(offered_by_some))}"
+            )
+        first = checked[self.scenarios[0]]
+        for note in first.notes:
             warnings.warn(note, stacklevel=3)
-        self.welcome, self._replies = checked.welcome, checked.replies
-        self.options = checked.options
-        return checked.all_options
+        self.welcome, self._replies = first.welcome, first.replies
+        return checked
 
     def _check_schema(self) -> Flattener:
         """The flat vector of the server's schema (`_check_scenario` checked the welcome)."""

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
-from protocol.messages import ActionSchema, FieldSpec
+from protocol.messages import ROAD_RANGE, ActionSchema, FieldSpec
 
 ACTION_SPACES = ("auto", "box", "hybrid", "discrete", "multi_discrete", "dict")
 """The names `RemoteEnv(action_space=...)` accepts."""
@@ -209,8 +209,9 @@ def field_bounds(spec: FieldSpec, sensor_range: float, schema: ActionSchema) -> 
     Neighbour flags are 0 or 1; gaps are at most the sensor range (an absent neighbour reports
     exactly it) and an overlap deeper than it is clipped, still negative; lateral offsets lie
     within the sensor range too; the ego's acceleration within the server's action bounds (every
-    command is clipped to them); lane indices and counts, speeds, times and distances are not
-    negative and capped at `MAX_LANES`, `MAX_SPEED`, `MAX_TIME` and `MAX_DISTANCE`.
+    command is clipped to them); the road's distances within [0, `ROAD_RANGE`] and the lanes to
+    change within ±(`MAX_LANES` - 1); lane indices and counts, speeds, times and distances are
+    not negative and capped at `MAX_LANES`, `MAX_SPEED`, `MAX_TIME` and `MAX_DISTANCE`.
     """
     name, unit = spec.name, spec.unit
     if name.endswith("_present"):
@@ -225,6 +226,10 @@ def field_bounds(spec: FieldSpec, sensor_range: float, schema: ActionSchema) -> 
         return 0.0, MAX_LANES - 1.0
     if name == "ego_lane_count":
         return 1.0, float(MAX_LANES)
+    if name == "lanes_to_change":
+        return 1.0 - MAX_LANES, MAX_LANES - 1.0
+    if name.endswith("lane_end"):
+        return 0.0, ROAD_RANGE
     caps = {"m/s": MAX_SPEED, "s": MAX_TIME, "m": MAX_DISTANCE}
     if unit in caps:
         return 0.0, caps[unit]

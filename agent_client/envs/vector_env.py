@@ -37,7 +37,7 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
     def __init__(
         self,
         addresses: Sequence[str],
-        scenario: str = DEFAULT_SCENARIO,
+        scenario: str | Sequence[str] = DEFAULT_SCENARIO,
         *,
         reward: str | RewardFn = "safe",
         timeout_s: float = STEP_TIMEOUT_S,

@@ -25,10 +25,16 @@ from agent_client.constants import MIN_MOVING_SPEED
 from agent_client.drivers.episode import Driver, Episode, run_episode
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.evaluation.metrics import EpisodeSamples, EpisodeSummary, episode_summary
+from agent_client.evaluation.routes import RouteChange, route_changes
 from agent_client.evaluation.trajectories import EpisodeTrace
 from protocol.messages import Observation, OptionValue, Safety
 
-ROLE_LABELS = {"policy": "policy", "baseline": "baseline", "cf_policy": "CF-only policy"}
+ROLE_LABELS = {
+    "policy": "policy",
+    "baseline": "baseline",
+    "reference": "reference",
+    "cf_policy": "CF-only policy",
+}
 """How the report names each role of `Evaluation.drivers`."""
 
 
@@ -84,6 +90,8 @@ class EpisodeRecord:
     """The ego's and its neighbours' trajectories, for the report's pictures of an episode."""
     safety: Safety | None = None
     """The simulator's surrogate safety measures of the episode (None if not reported)."""
+    route_changes: list[RouteChange] = field(default_factory=list)
+    """The lane changes it started towards its route (`agent_client.evaluation.routes`)."""
 
     @classmethod
     def from_episode(cls, episode: Episode) -> EpisodeRecord:
@@ -105,6 +113,7 @@ class EpisodeRecord:
             refusals=dict(refusals),
             trace=EpisodeTrace.from_observations(observations, episode.step_length, episode.seed),
             safety=observations[-1].safety,
+            route_changes=route_changes(observations),
         )
 
 
@@ -156,13 +165,18 @@ class Evaluation:
     policy: DriverRun
     baseline: DriverRun
     cf_policy: DriverRun | None = None
+    reference: DriverRun | None = None
+    """A second baseline on the same seeds (the simulator's own driver, ``sumo``)."""
     training_rows: list[dict[str, str]] | None = None
     run_folder: str | None = None
     table2_bins: int = 10
 
     def drivers(self) -> dict[str, DriverRun]:
-        """The compared drivers by role: policy, baseline and (if given) cf_policy."""
+        """The compared drivers by role: policy, baseline and (if given) reference and
+        cf_policy."""
         found = {"policy": self.policy, "baseline": self.baseline}
+        if self.reference is not None:
+            found["reference"] = self.reference
         if self.cf_policy is not None:
             found["cf_policy"] = self.cf_policy
         return found

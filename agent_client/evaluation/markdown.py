@@ -60,6 +60,7 @@ def render_markdown(metrics: dict[str, Any]) -> str:
             "Not applicable: the scenario has one lane (evaluate on `cflc` for these tables).",
             "",
         ]
+    lines += _route_section(metrics)
     lines += _trajectory_section(metrics)
     lines += [
         f"Every figure above is in `metrics.json`. Paper: {metrics['paper']['source']}.",
@@ -343,6 +344,69 @@ def _integrated_vs_cf_section(versus: dict[str, Any] | None, paper: dict[str, An
         "",
         "Fig. 9 above shows the CF-only policy's speed distribution too.",
     ]
+
+
+# --------------------------------------------------------------------------- the route
+
+_ROUTE_ROWS: tuple[tuple[str, str, str], ...] = (
+    ("reached the end of the route", "arrival_share", "pct"),
+    ("stood at a lane end (`lane_end`)", "lane_end_share", "pct"),
+    ("route changes per episode", "route_changes_per_episode", "f2"),
+    ("median distance to the lane end at the change (m)", "median_lane_end_at_change", "f0"),
+    ("shortest distance to the lane end at a change (m)", "min_lane_end_at_change", "f0"),
+    ("median time of the change after the hand-over (s)", "median_time_of_change", "f1"),
+    ("median gap accepted to the new leader (s)", "median_lead_headway", "f2"),
+    ("median gap accepted from the new follower (s)", "median_lag_headway", "f2"),
+    ("shortest gap from the new follower (m)", "min_lag_gap", "f1"),
+    ("median braking imposed on the new follower (m/s²)", "median_follower_braking", "f2"),
+    ("hardest braking imposed on the new follower (m/s²)", "max_follower_braking", "f2"),
+    ("minimum PET, SSM device (s)", "min_pet", "f2"),
+)
+"""The route table's rows: label, key of `routes.route_figures`, format."""
+
+
+def _route_cell(value: Any, kind: str) -> str:
+    if value is None:
+        return "-"
+    if kind == "pct":
+        return _pct(value)
+    return f"{value:.{kind[1]}f}"
+
+
+def _route_section(metrics: dict[str, Any]) -> list[str]:
+    """Merges, exits and lane drops: arrivals, where and into which gap each driver changed
+    towards its route, the braking it imposed, and the picture of one change."""
+    drivers = {r: d for r, d in metrics["drivers"].items() if d.get("route")}
+    if not drivers:
+        return []
+    header = ["figure", *(f"{ROLE_LABELS[r]} (`{d['spec']}`)" for r, d in drivers.items())]
+    rows = [
+        [label, *(_route_cell(d["route"][key], kind) for d in drivers.values())]
+        for label, key, kind in _ROUTE_ROWS
+    ]
+    lines = ["## The route: merges, exits, lane drops", ""]
+    lines += _table(header, rows)
+    lines += [
+        "",
+        "A route change is a lane change started towards a lane that leads on along the route "
+        "(`road.lanes_to_change`, docs/protocol.md §4.9); its gaps are those of the target lane "
+        "when it started, in seconds of the ego's speed; the braking imposed is the new "
+        "follower's hardest deceleration in the 5 s after the change completed. The same seeds "
+        "for every driver.",
+        "",
+    ]
+    plan = metrics["figures"].get("route_change")
+    if plan:
+        lines += [
+            f"![route change, seed {plan['seed']}]({plan['file']})",
+            "",
+            f"Seed {plan['seed']}: each driver's first route change, along the road from the end "
+            "of the lane it left (red dashed line); the ego thick black, the vehicles of the "
+            "lane it moved to coloured by their speed; the triangle marks where the change "
+            "started, the dotted line when it completed.",
+            "",
+        ]
+    return lines
 
 
 # --------------------------------------------------------------------------- chosen episodes

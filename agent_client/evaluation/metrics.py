@@ -21,7 +21,7 @@ import numpy as np
 
 from agent_client.constants import HEADWAY_SAFE, JERK_COMFORT_LIMIT, MIN_MOVING_SPEED
 from agent_client.drivers.episode import Episode
-from protocol.messages import Observation
+from protocol.messages import EndReason, Observation
 
 
 def jerk_series(
@@ -136,6 +136,9 @@ class EpisodeSummary:
     """Started lane changes the simulator gave up (counted in `lane_changes_started` too)."""
     headway_samples: int = 0
     """Time headways behind `headway_share_below_1s`: its weight when episodes are pooled."""
+    route_lanes: int = 0
+    """The most lanes the route asked the ego to cross at once (`Road.lanes_to_change`): above
+    0 on a road with a lane end or an exit, where reaching the end of the route is a target."""
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -178,6 +181,7 @@ def episode_summary(episode: Episode) -> EpisodeSummary:
         successful_lc_reward=_successful_lc_reward(episode),
         lane_changes_aborted=sum(o.events.lane_change_aborted for o in observations),
         headway_samples=len(headways),
+        route_lanes=max((abs(o.road.lanes_to_change) for o in observations if o.road), default=0),
     )
 
 
@@ -232,6 +236,8 @@ def aggregate(summaries: Sequence[EpisodeSummary]) -> dict[str, float]:
         "speed_ratio_to_ceiling": float(np.mean(ratios)) if ratios else float("nan"),
         "min_ttc": float(np.min(ttcs)) if ttcs else float("nan"),
         "total_reward": float(np.mean([s.total_reward for s in summaries])),
+        "arrival_share": float(np.mean([s.reason == EndReason.END_OF_ROAD for s in summaries])),
+        "route_lanes": max(s.route_lanes for s in summaries),
     }
 
 

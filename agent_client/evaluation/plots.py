@@ -14,7 +14,12 @@ import numpy as np
 from agent_client.constants import JERK_COMFORT_LIMIT
 from agent_client.evaluation.evaluate import ROLE_LABELS
 
-COLOURS = {"policy": "tab:blue", "baseline": "tab:orange", "cf_policy": "tab:green"}
+COLOURS = {
+    "policy": "tab:blue",
+    "baseline": "tab:orange",
+    "reference": "tab:purple",
+    "cf_policy": "tab:green",
+}
 """Each driver role's colour, the same in both figures."""
 
 

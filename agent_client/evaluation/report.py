@@ -27,6 +27,7 @@ from agent_client.evaluation.plots import (
     plot_safety,
     plot_speed_distribution,
 )
+from agent_client.evaluation.route_plots import plot_route_changes
 from agent_client.evaluation.summaries import summarise, table2
 from agent_client.evaluation.targets import targets_met
 from agent_client.evaluation.trajectory_plots import plot_time_series, plot_time_space
@@ -34,6 +35,7 @@ from agent_client.evaluation.trajectory_plots import plot_time_series, plot_time
 SPEED_FIGURE = "speed_distribution.png"
 JERK_FIGURE = "jerk_distribution.png"
 SAFETY_FIGURE = "safety.png"
+ROUTE_FIGURE = "route_change.png"
 
 
 def _ratio(numerator: float | None, denominator: float | None) -> float | None:
@@ -70,8 +72,20 @@ def build_metrics(
             "jerk_distribution": JERK_FIGURE,
             "safety": SAFETY_FIGURE if _any_conflict(drivers) else None,
             "trajectories": trajectory_plan(evaluation, trajectory_seeds),
+            "route_change": _route_plan(evaluation),
         },
     }
+
+
+def _route_plan(evaluation: Evaluation) -> dict[str, Any] | None:
+    """The seed whose route changes the report draws: the first on which the policy made one
+    (else the baseline), with its file; None where no driver made one."""
+    drivers = evaluation.drivers()
+    for role in ("policy", "baseline"):
+        for index, record in enumerate(drivers[role].records):
+            if record.route_changes and record.trace is not None:
+                return {"seed": evaluation.seeds[index], "file": ROUTE_FIGURE}
+    return None
 
 
 def _any_conflict(drivers: dict[str, Any]) -> bool:
@@ -153,6 +167,7 @@ def write_report(
     plot_jerk_distribution(jerks, metrics, out / JERK_FIGURE)
     plot_safety(metrics, out / SAFETY_FIGURE)
     _draw_trajectories(out, evaluation, metrics)
+    _draw_route_change(out, evaluation, metrics)
     path = out / "report.md"
     path.write_text(render_markdown(metrics))
     return path
@@ -256,6 +271,23 @@ def _draw_trajectories(out: Path, evaluation: Evaluation, metrics: dict[str, Any
         labels = {role: f"{ROLE_LABELS[role]} ({drivers[role].spec})" for role in traces}
         title = f"{evaluation.scenario}, seed {seed}: every driver on the same seed"
         plot_time_series(traces, labels, out / entry["time_series"], title)
+
+
+def _draw_route_change(out: Path, evaluation: Evaluation, metrics: dict[str, Any]) -> None:
+    """Every driver's first route change on the planned seed, side by side."""
+    plan = metrics["figures"]["route_change"]
+    if plan is None:
+        return
+    index = list(evaluation.seeds).index(plan["seed"])
+    panels = {}
+    for role, run in evaluation.drivers().items():
+        record = run.records[index] if index < len(run.records) else None
+        if record is None or record.trace is None:
+            continue
+        first = record.route_changes[0] if record.route_changes else None
+        panels[role] = (f"{ROLE_LABELS[role]} ({run.spec})", record.trace, first)
+    title = f"{evaluation.scenario}, seed {plan['seed']}: the first lane change towards the route"
+    plot_route_changes(panels, out / plan["file"], title)
 
 
 _IMAGE = re.compile(r"(!\[[^\]]*\]\()([^)/][^)]*\))")

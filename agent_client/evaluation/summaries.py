@@ -22,6 +22,7 @@ import numpy as np
 from agent_client.constants import HEADWAY_SAFE, TTC_CRITICAL
 from agent_client.evaluation.evaluate import EpisodeRecord, LaneChangeGap
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate
+from agent_client.evaluation.routes import min_pet, route_figures
 from agent_client.evaluation.safety import safety_figures
 
 
@@ -109,6 +110,13 @@ def summarise(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
             "safety": safety_figures(records),
             "end_reasons": dict(sorted(Counter(s.reason for s in summaries).items())),
             "per_episode": _per_episode(summaries),
+            "route": route_figures(
+                [s.reason for s in summaries],
+                [r.route_changes for r in records],
+                [min_pet(r.safety) for r in records],
+            )
+            if any(s.route_lanes for s in summaries)
+            else None,
         }
     )
     return figures

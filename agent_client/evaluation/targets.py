@@ -6,11 +6,13 @@ evaluation report applies the same criteria to the policy against its baseline.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from agent_client.evaluation.metrics import EpisodeSummary
 from agent_client.evaluation.paper import DRL_JERK_SHARE_ABOVE_LIMIT
+from protocol.messages import EndReason
 
 JERK_TARGET = DRL_JERK_SHARE_ABOVE_LIMIT
 """Share of jerk samples above 5.6 m/s^3 allowed: no more than the paper's DRL driver."""
@@ -24,16 +26,25 @@ last observation, the leader's arrival step) may put a driver a hair above its c
 
 
 def targets_met(policy: Mapping[str, float], idm: Mapping[str, float]) -> dict[str, bool]:
-    """Which criteria the policy's figures meet against the IDM baseline's.
+    """Which criteria the policy's figures meet against the reference's (IDM's, or IDM +
+    MOBIL's where the road needs lane changes) on the same seeds.
 
     Both are `agent_client.evaluation.metrics.aggregate` figures (or `summarise`'s, a superset).
+    A policy without a leader-at-entry ceiling fails ``near_ceiling`` unless the reference has
+    none either (a ring; routes that no leader at entry shares): then it does not apply. On a
+    road with a lane end or an exit every episode must reach the end of the route
+    (``arrives``); elsewhere that target does not apply.
     """
+    ratio = policy["speed_ratio_to_ceiling"]
+    unknown = math.isnan(ratio) and math.isnan(idm.get("speed_ratio_to_ceiling", 0.0))
+    routed = policy.get("route_lanes", 0) > 0 or idm.get("route_lanes", 0) > 0
     return {
         "no_collisions": policy["collisions_per_episode"] == 0,
         "comfortable": policy["jerk_share_above_limit"] <= JERK_TARGET,
         "safe_headway": policy["headway_share_below_1s"] <= HEADWAY_TARGET,
         "as_fast_as_idm": policy["average_speed"] >= idm["average_speed"],
-        "near_ceiling": policy["speed_ratio_to_ceiling"] >= CEILING_TARGET,
+        "near_ceiling": unknown or ratio >= CEILING_TARGET,
+        "arrives": not routed or policy.get("arrival_share", 0.0) >= 1.0,
     }
 
 
@@ -57,12 +68,17 @@ class FailureScreen:
     """Per seed (in evaluation order), the highest average speed any driver can reach: on one
     lane the leader-at-entry ceiling, which IDM's episode on that seed measured. None where a
     driver can pass its leader (several lanes): the speed targets are judged at the end."""
+    routed: bool = False
+    """The road has a lane end or an exit: an episode that does not reach the end of the route
+    fails ``arrives``."""
 
     def failed(self, done: Sequence[EpisodeSummary], remaining: Sequence[int]) -> str | None:
         """The first target that `done` has already failed, whatever the seed indices in
         `remaining` give; None while every target can still be met."""
         if any(s.collisions for s in done):
             return "no_collisions"
+        if self.routed and any(s.reason != EndReason.END_OF_ROAD for s in done):
+            return "arrives"
         left = len(remaining)
         if self.max_steps is not None:
             steps = sum(s.steps for s in done) + left * self.max_steps

@@ -8,9 +8,16 @@ scaling inputs is a learning decision, so it lives here. Two sets:
   huge gap).
 * ``lc`` — ``cf`` plus the other five neighbours of Fig. 11 (presence, gap, relative speed) and
   whether there is a lane to the left and to the right.
+* ``road`` — ``lc`` plus the road ahead along the route (`protocol.messages.Road`, protocol 1.6):
+  how far the ego's lane and the lanes beside it go on, the lanes it must cross (and to which
+  side), and the seconds left to the end of its lane at its speed. On a road whose lanes all go
+  on (``cf``, ``cflc``, the ring) they are constant but for the lanes beside the ego, which
+  repeat ``lc``'s last two features; from a server older than 1.6 they are those of the open
+  road.
 
 All features are O(1): speeds by the speed limit, gaps by 100 m (capped at 2), speed differences
-by 10 m/s, headways by 5 s (capped at 1).
+by 10 m/s, headways by 5 s (capped at 1), the road's distances by `ROAD_RANGE`, the lanes to
+change by 2 (capped at ±1.5), the time to the lane end by 10 s (capped at 1).
 """
 
 from __future__ import annotations
@@ -22,9 +29,16 @@ import numpy as np
 from agent_client.constants import PAPER_SPEED_LIMIT
 from agent_client.errors import FeatureMismatch, UsageError
 from agent_client.rl.lanes import lane_phase
-from protocol.messages import Neighbour, Observation
+from protocol.messages import ROAD_RANGE, Neighbour, Observation, road_ahead
 
-__all__ = ["FEATURE_SETS", "FeatureMap", "FeatureMismatch", "car_following", "lane_changing"]
+__all__ = [
+    "FEATURE_SETS",
+    "FeatureMap",
+    "FeatureMismatch",
+    "car_following",
+    "lane_changing",
+    "road_reading",
+]
 
 GAP_SCALE = 100.0
 GAP_CAP = 2.0
@@ -68,9 +82,31 @@ def lane_changing(obs: Observation) -> list[float]:
     return features
 
 
+LANES_SCALE = 2.0
+LANES_CAP = 1.5
+LANE_END_TIME_SCALE = 10.0
+
+
+def road_reading(obs: Observation) -> list[float]:
+    """Lane-changing features and the road ahead along the route."""
+    features = lane_changing(obs)
+    road = road_ahead(obs)
+    lanes = min(max(road.lanes_to_change / LANES_SCALE, -LANES_CAP), LANES_CAP)
+    seconds = road.lane_end / max(obs.ego.speed, 1.0) / LANE_END_TIME_SCALE
+    features += [
+        road.lane_end / ROAD_RANGE,
+        lanes,
+        road.left_lane_end / ROAD_RANGE,
+        road.right_lane_end / ROAD_RANGE,
+        min(seconds, 1.0),
+    ]
+    return features
+
+
 FEATURE_SETS: dict[str, Callable[[Observation], list[float]]] = {
     "cf": car_following,
     "lc": lane_changing,
+    "road": road_reading,
 }
 
 

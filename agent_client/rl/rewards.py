@@ -27,6 +27,7 @@ from typing import Any
 from agent_client.constants import JERK_COMFORT_LIMIT, KMH_PER_MS, PAPER_SPEED_LIMIT
 from agent_client.errors import UsageError
 from protocol.messages import (
+    ROAD_RANGE,
     AppliedAction,
     Ego,
     Events,
@@ -80,6 +81,8 @@ MIN_INTERVAL = 1e-3
 """s: shorter times between observations give no jerk or acceleration estimate (0)."""
 DIVISION_EPSILON = 1e-3
 """Floor of Eq. 6's denominator |(d - h_d v) Δv'| (m, times the dimensionless Δv')."""
+ROUTE_LANES = 3
+"""Lanes to change that the route's shaping counts at most (`route_potential`)."""
 
 
 # --------------------------------------------------------------------------- state flags
@@ -394,12 +397,20 @@ class SafeReward:
     - ``stop_penalty`` (default 0) costs the step that ends an episode as an unreasonable
       stop (the server's ``stopped``: standing with the road ahead free), a failure like a
       crash, where 0 leaves it an end like the road's, which pays nothing more either.
+    - The route (protocol 1.6, `Observation.road`): ``lane_end_penalty`` costs the step that
+      ends an episode at the end of a lane it had to leave (``lane_end``: a merge not made, an
+      exit missed), and ``route_weight`` shapes the way there with the potential
+      Phi = -|lanes to change| (1 - lane_end / ROAD_RANGE) (Ng et al. 1999): each step adds
+      w (Phi(obs) - Phi(prev)), so a lane change towards the route earns what staying would
+      cost later, and the end comes into view long before the discount horizon of ~5 s does.
+      On roads whose lanes all go on (cf, cflc, the ring) both are always 0.
 
     (a) Crashing never pays. Normal driving is >= 0 per step; the only negative collision-free
-    terms are lane-change costs, at most c = 0.1 per step, and the stop penalty, which ends the
-    episode and may not exceed the collision penalty. Even the worst collision-free future
-    is worth >= -c / (1 - gamma) = -0.1 / 0.01 = -10 at gamma = 0.99, above the -20 of crashing
-    now: at no state is a crash (or any episode end) better than going on.
+    terms are lane-change costs, at most c = 0.1 per step, the route's shaping, which sums to
+    at most w x `ROUTE_LANES` over an episode, and the stop and lane-end penalties, which end
+    the episode; the two ends may not cost more than the collision penalty. Even the worst
+    collision-free future is worth >= -c / (1 - gamma) = -0.1 / 0.01 = -10 at gamma = 0.99,
+    above the -20 of crashing now: at no state is a crash (or any episode end) better than going on.
     `min_collision_penalty(gamma)` gives the bound for other gammas.
     Full throttle (3 m/s^2) from 15 m/s, 30 m behind a 15 m/s leader (see the test
     test_safe_full_throttle_crash_is_worse_than_following): the crash after 5.4 s returns 6.4 at
@@ -434,6 +445,11 @@ class SafeReward:
     stop_penalty: float = 0.0
     """Cost of the step that ends an episode as an unreasonable stop (``stopped``: standing
     with the road ahead free); 0 leaves it an episode end like the road's."""
+    lane_end_penalty: float = 5.0
+    """Cost of the step that ends an episode at the end of a lane the ego had to leave
+    (``lane_end``)."""
+    route_weight: float = 2.0
+    """w of the route's potential shaping, per lane to change (0: none)."""
     fallback_speed_limit: float = REFERENCE_SPEED
     """m/s: used if the observation carries no positive speed limit."""
 
@@ -451,12 +467,18 @@ class SafeReward:
         if not 0.0 <= self.jerk_weight <= 1.0:
             raise ValueError(f"jerk_weight must be within [0, 1], got {self.jerk_weight}")
         if min(self.refused_weight, self.lane_change_weight, self.collision_penalty,
-               self.stop_penalty) < 0.0:  # fmt: skip
-            raise ValueError("lane-change weights and the penalties must be non-negative")
+               self.stop_penalty, self.lane_end_penalty, self.route_weight) < 0.0:  # fmt: skip
+            raise ValueError("lane-change weights, penalties and route weight must be non-negative")
         if self.stop_penalty > self.collision_penalty:
             raise ValueError(
                 f"stop_penalty {self.stop_penalty} must not exceed collision_penalty "
                 f"{self.collision_penalty}: a crash would then pay better than a stop"
+            )
+        if self.lane_end_cost > self.collision_penalty:
+            raise ValueError(
+                f"lane_end_penalty + {ROUTE_LANES} x route_weight = {self.lane_end_cost:g} must "
+                f"not exceed collision_penalty {self.collision_penalty}: a crash would then pay "
+                "better than missing the route"
             )
 
     def __call__(self, prev: Observation | None, obs: Observation, dt: float) -> float:
@@ -464,6 +486,9 @@ class SafeReward:
             return -self.collision_penalty
         if self.stop_penalty and obs.reason == "stopped":
             return -self.stop_penalty
+        route = self.route_weight * (route_potential(obs) - route_potential(prev)) if prev else 0.0
+        if obs.reason == "lane_end":
+            return route - self.lane_end_penalty
         limit = obs.ego.speed_limit if obs.ego.speed_limit > 0.0 else self.fallback_speed_limit
         efficiency = min(max(obs.ego.speed / limit, 0.0), 1.0)
         drive = efficiency * self.headway_score(obs) * (1.0 - self.ttc_weight * self.ttc_cost(obs))
@@ -474,7 +499,7 @@ class SafeReward:
             lane = self.refused_weight
         elif obs.events.lane_change_started:
             lane = self.lane_change_weight
-        return drive * comfort - lane
+        return drive * comfort - lane + route
 
     def headway_score(self, obs: Observation) -> float:
         """H in [0, 1]: 1 at h_d, with no leader, or standing still; 0 when overlapping."""
@@ -509,11 +534,26 @@ class SafeReward:
         """Lowest reward of a collision-free step that lets the episode go on (<= 0)."""
         return -max(self.refused_weight, self.lane_change_weight)
 
+    @property
+    def lane_end_cost(self) -> float:
+        """The most missing the route can cost: the lane-end penalty and the whole shaping."""
+        return self.lane_end_penalty + ROUTE_LANES * self.route_weight
+
     def min_collision_penalty(self, gamma: float) -> float:
         """Penalty above which a crash is worse than the worst collision-free future (going on
-        at `worst_step` for ever, or ending in an unreasonable stop)."""
+        at `worst_step` for ever, or ending in an unreasonable stop or at a lane end)."""
         _check_gamma(gamma)
-        return max(-self.worst_step() / (1.0 - gamma), self.stop_penalty)
+        return max(-self.worst_step() / (1.0 - gamma), self.stop_penalty, self.lane_end_cost)
+
+
+def route_potential(obs: Observation) -> float:
+    """Phi of the route's shaping, in [-`ROUTE_LANES`, 0]: minus the lanes the ego must still
+    cross, each weighted by how near the end of its lane is (0 at `ROAD_RANGE` or beyond)."""
+    road = obs.road
+    if road is None or not road.lanes_to_change:
+        return 0.0
+    lanes = min(abs(road.lanes_to_change), ROUTE_LANES)
+    return -lanes * (1.0 - min(road.lane_end, ROAD_RANGE) / ROAD_RANGE)
 
 
 # --------------------------------------------------------------------------- the ring's waves

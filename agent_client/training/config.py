@@ -51,15 +51,22 @@ smoothness term. Plain DDPG with the same settings is `--algo ddpg`."""
 class TrainConfig:
     """Everything a training run depends on (saved as config.json in the run folder)."""
 
-    scenario: str = DEFAULT_SCENARIO
-    """Scenario name offered by the server (cf, cflc, or a user's own)."""
+    scenario: str | list[str] = DEFAULT_SCENARIO
+    """Scenario offered by the server (cf, cflc, merge, exit, lanedrop, or a user's own), or a
+    list of them: one policy over all, each episode driving the one its seed picks, converged
+    when every scenario meets its targets."""
     reward: str = "safe"
     """Reward function: safe (ours, recommended), ra1, ra2, ra3, ra4 or rlc."""
     reward_params: dict[str, float] = field(default_factory=dict)
     """Keyword parameters of the reward, e.g. ``{desired_headway = 1.1}`` for safe (the fields
     of its class in `agent_client.rl.rewards`); {}: the reward's defaults."""
     features: str = "auto"
-    """Network inputs: cf, lc, or auto (lc on multi-lane roads, else cf)."""
+    """Network inputs: cf, lc, road, or auto (on roads with several lanes road where the server
+    reports the road ahead, protocol 1.6, else lc; cf on one lane)."""
+    reference: str = "auto"
+    """The driver the evaluations compare the policy with, on the same seeds (``as fast as``):
+    a driver spec (idm, idm+mobil, idm:PARAMS.json, a policy file), or auto: idm on one lane,
+    idm+mobil where lanes change."""
     lane_change: str = "auto"
     """Learn lane changes: yes, no, or auto (yes on multi-lane roads)."""
     episodes: int = 300
@@ -85,7 +92,8 @@ class TrainConfig:
     buffer, one training episode per ego's drive (docs/learner.md, "Many egos: one shared
     policy"); evaluations stay one-ego. 1: one ego per server, as before."""
     warmup_policy: str = "idm"
-    """Actions before learning starts: idm (baseline + noise) or random."""
+    """Actions before learning starts: idm (baseline + noise), idm+mobil (with its lane changes,
+    those a route needs included, + noise) or random."""
     pretrain_idm: bool = False
     """Behaviour-clone the actor on IDM's actions before DDPG (the paper's §4.3.2 tip)."""
     pretrain_episodes: int = 5
@@ -158,7 +166,7 @@ class TrainConfig:
             "reward": tuple(REWARDS),
             "features": ("auto", *FEATURE_SETS),
             "lane_change": ("auto", "yes", "no"),
-            "warmup_policy": ("idm", "random"),
+            "warmup_policy": ("idm", "idm+mobil", "random"),
             "sampling": ("local", "ray"),
         }
         for name, valid in choices.items():
@@ -167,6 +175,11 @@ class TrainConfig:
                     f"{name} {getattr(self, name)!r} is not one of: {', '.join(valid)}"
                 )
         self.reward_fn()  # a parameter the reward lacks, or a bad value, is a UsageError
+        names = self.scenarios
+        if not names or not all(isinstance(n, str) and n for n in names):
+            raise UsageError(f"scenario must be a name or a list of names, got {self.scenario!r}")
+        if len(set(names)) != len(names):
+            raise UsageError(f"scenario lists a scenario twice: {', '.join(names)}")
         for setting in dataclasses.fields(self):  # --set eval_screen=False is not false
             value = getattr(self, setting.name)
             if isinstance(setting.default, bool) and not isinstance(value, bool):
@@ -217,6 +230,16 @@ class TrainConfig:
             return make_reward(self.reward, **self.reward_params)
         except ValueError as exc:
             raise UsageError(f"reward_params for {self.reward}: {exc}") from exc
+
+    @property
+    def scenarios(self) -> tuple[str, ...]:
+        """The scenarios trained on (one, or several: see `scenario`)."""
+        return (self.scenario,) if isinstance(self.scenario, str) else tuple(self.scenario)
+
+    @property
+    def label(self) -> str:
+        """The scenarios as a name: ``cf``, ``merge+exit+cflc``."""
+        return "+".join(self.scenarios)
 
     @property
     def lane_decision_every(self) -> int:

@@ -160,7 +160,7 @@ class EvaluationPool:
     def __init__(
         self,
         addresses: Sequence[str],
-        scenario: str,
+        scenario: str | Sequence[str],
         reward: str,
         reward_params: dict[str, Any],
         options: dict[str, OptionValue],
@@ -173,7 +173,7 @@ class EvaluationPool:
             raise ValueError("an evaluation pool needs at least one server")
         self._connect = {
             "op": "connect",
-            "scenario": scenario,
+            "scenario": scenario if isinstance(scenario, str) else list(scenario),
             "reward": reward,
             "reward_params": dict(reward_params),
             "options": dict(options),
@@ -204,7 +204,8 @@ class EvaluationPool:
         return self.job is not None
 
     def run(self, job: EvaluationJob) -> list[EpisodeSummary]:
-        """Drive `job` to its end (`job.driver` an `IDMDriver` or a `PolicyDriver`). The
+        """Drive `job` to its end (`job.driver` an `IDMDriver`, an `IDMMobilDriver` or a
+        `PolicyDriver`). The
         summaries in seed order; `job.stopped` set if it ended early."""
         self.start(job)
         return self.finish()

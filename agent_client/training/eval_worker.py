@@ -2,15 +2,16 @@
 
 ``python -m agent_client.training.eval_worker`` talks to the learner over its stdin and stdout in
 the direct transport's frames (a 4-byte length, then a msgpack map; no pickle). It connects to
-one evaluation server, then drives the episodes it is given one at a time with IDM or a policy
-(its weights come in the message: the worker never imports torch), and answers each with the
-episode's summary. While an episode runs it says it is alive every `ALIVE_EVERY_S` and looks
-for a stop every `STOP_POLL_STEPS` steps, so the learner can tell a hung worker from a long
-episode and end an evaluation that has failed at once.
+one evaluation server, then drives the episodes it is given one at a time with IDM, IDM + MOBIL
+or a policy (its weights come in the message: the worker never imports torch), and answers each
+with the episode's summary. While an episode runs it says it is alive every `ALIVE_EVERY_S` and
+looks for a stop every `STOP_POLL_STEPS` steps, so the learner can tell a hung worker from a
+long episode and end an evaluation that has failed at once.
 
 Messages are maps with an ``op``. The learner's requests carry an ``id``: ``connect`` (the
-server, the scenario, the reward and the reset options), ``reconnect``, ``driver`` (IDM's
-parameters, or a policy's weights) and ``episode`` (an index and a seed); ``stop`` has none.
+server, the scenario or scenarios, the reward and the reset options), ``reconnect``,
+``driver`` (IDM's parameters, with MOBIL's, or a policy's weights) and ``episode`` (an index
+and a seed); ``stop`` has none.
 Every message the worker sends while it handles a request echoes that request's ``id``:
 ``alive`` while it works, then ``ready`` (after ``connect``, ``reconnect`` and ``driver``),
 ``summary`` or ``stopped`` (after ``episode``), or ``error`` (a `kind` the learner raises
@@ -33,6 +34,7 @@ import numpy as np
 
 from agent_client.drivers.episode import Driver, run_episode
 from agent_client.drivers.idm import IDMDriver, IDMParams
+from agent_client.drivers.mobil import IDMMobilDriver, MobilParams
 from agent_client.drivers.policy import ActionScale, PolicyDriver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import (
@@ -209,9 +211,10 @@ class _Worker:
         deadline = time.monotonic() + float(message.get("wait_s", 0.0))
         while self.env is None:
             try:
+                scenario = message["scenario"]
                 self.env = RemoteEnv(
                     str(message["address"]),
-                    str(message["scenario"]),
+                    scenario if isinstance(scenario, str) else [str(s) for s in scenario],
                     reward=make_reward(str(message["reward"]), **message["reward_params"]),
                     timeout_s=float(message["timeout_s"]),
                     **message["options"],
@@ -281,12 +284,16 @@ class _Worker:
 
 
 def driver_message(driver: Driver) -> dict[str, Any]:
-    """The ``driver`` request that has a worker drive as `driver` does: IDM's parameters, or a
-    policy's weights (float32 arrays as bytes) with its features, lanes and action scale."""
+    """The ``driver`` request that has a worker drive as `driver` does: IDM's (and MOBIL's)
+    parameters, or a policy's weights (float32 arrays as bytes) with its features, lanes and
+    action scale."""
     if isinstance(driver, IDMDriver):
         return {"op": "driver", "kind": "idm", "params": driver.params.to_dict()}
+    if isinstance(driver, IDMMobilDriver):
+        params, mobil = driver.params.to_dict(), driver.mobil.to_dict()
+        return {"op": "driver", "kind": "idm+mobil", "params": params, "mobil": mobil}
     if not isinstance(driver, PolicyDriver):
-        raise ValueError(f"an evaluation worker drives IDM or a policy, not {driver!r}")
+        raise ValueError(f"an evaluation worker drives IDM (+ MOBIL) or a policy, not {driver!r}")
     policy, critic = driver.policy, driver.policy.critic
     arrays = [*policy.actor.params, *(critic.params if critic is not None else ())]
     size = sum(np.asarray(p, dtype=np.float32).nbytes for p in arrays)
@@ -313,6 +320,8 @@ def driver_from_message(message: dict[str, Any]) -> Driver:
     """The driver a ``driver`` message describes (`driver_message`)."""
     if message.get("kind") == "idm":
         return IDMDriver(IDMParams(**message["params"]))
+    if message.get("kind") == "idm+mobil":
+        return IDMMobilDriver(IDMParams(**message["params"]), MobilParams(**message["mobil"]))
     critic = message["critic"]
     policy = GreedyPolicy(
         [_from_array(p) for p in message["actor"]],

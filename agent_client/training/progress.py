@@ -119,14 +119,18 @@ def evaluation_line(evaluation: dict[str, Any]) -> str:
     passed = [
         k.removeprefix("target_") for k, v in evaluation.items() if k.startswith("target_") and v
     ]
+    arrived = float(evaluation.get("arrival_share", 1.0))
+    failed = evaluation.get("failed_scenarios")
     return (
         f"  eval @ {evaluation['episode']}: speed {evaluation['average_speed']:.2f} m/s "
-        f"({evaluation['speed_ratio_to_idm']:.3f}x IDM, "
+        f"({evaluation['speed_ratio_to_idm']:.3f}x reference, "
         f"{evaluation['speed_ratio_to_ceiling']:.3f}x ceiling), "
         f"collisions/ep {evaluation['collisions_per_episode']:.2f}, "
         f"jerk>5.6 {100 * evaluation['jerk_share_above_limit']:.2f}%, "
         f"headway<1s {100 * evaluation['headway_share_below_1s']:.2f}% | "
-        f"passed: {', '.join(passed) or 'none'} | in a row: {evaluation['passed_in_a_row']}"
+        + (f"arrived {100 * arrived:.0f}% | " if evaluation.get("route_lanes") else "")
+        + f"passed: {', '.join(passed) or 'none'} | in a row: {evaluation['passed_in_a_row']}"
+        + (f" | failed: {failed}" if failed else "")
         + (
             f" | stopped after {evaluation['episodes']} episodes: {evaluation['stopped']} failed"
             if evaluation.get("stopped")

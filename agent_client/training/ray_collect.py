@@ -223,9 +223,9 @@ def ray_collector(
     env, learner = vec.envs[0], config.learner
     spec = WorkerSpec(
         address=env.address,
-        scenario=config.scenario,
+        scenario=list(config.scenarios),
         reward=env.reward_fn,
-        options=dict(env.options),
+        options=dict(env.requested_options),
         reset_options=dict(reset_options),
         features=features.name,
         lane_phase_every=features.lane_phase_every,

@@ -40,7 +40,7 @@ class WorkerSpec:
     """Everything a worker needs to build its env, features and exploration (picklable)."""
 
     address: str
-    scenario: str
+    scenario: str | list[str]
     reward: RewardFn
     """The reward (a dataclass of `agent_client.rl.rewards`, picklable for Ray)."""
     options: dict[str, Any]

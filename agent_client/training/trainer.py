@@ -9,14 +9,15 @@ With ``egos`` > 1 every server runs simulations of that many egos, all driven by
 policy, every ego's steps feeding the one buffer (`agent_client.training.multi_collect`); the
 evaluations stay one-ego episodes.
 
-Greedy evaluations on held-out seeds judge the policy against the IDM baseline and the
-leader-at-entry ceiling. On servers of their own (`eval_servers`) they run in the background,
-in the kernel's idle scheduling class, while training goes on: an evaluation is read at the
-next multiple of `eval_every`, where the next may be due, and one that could complete
-convergence runs while training waits, so the run (episodes, verdicts, the converged episode)
-is the one `eval_while_training` off gives, where every evaluation blocks. Without them they
-run inline on the training servers. Checkpoints make a run resumable; with one training server
-the same seed and configuration give the same run.
+Greedy evaluations on held-out seeds judge the policy against a reference driver (IDM, or IDM +
+MOBIL where lanes change: `TrainConfig.reference`) and the leader-at-entry ceiling; with several
+scenarios, each on seeds of its own, against its own reference figures. On servers of their own
+(`eval_servers`) they run in the background, in the kernel's idle scheduling class, while training
+goes on: an evaluation is read at the next multiple of `eval_every`, where the next may be due, and
+one that could complete convergence runs while training waits, so the run (episodes, verdicts, the
+converged episode) is the one `eval_while_training` off gives, where every evaluation blocks.
+Without them they run inline on the training servers. Checkpoints make a run resumable; with one
+training server the same seed and configuration give the same run.
 """
 
 from __future__ import annotations
@@ -36,10 +37,11 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 import torch
 
-from agent_client.defaults import PRETRAIN_SEED, STEP_TIMEOUT_S
+from agent_client.defaults import PRETRAIN_SEED, RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.drivers.episode import run_episode
 from agent_client.drivers.idm import IDMDriver
 from agent_client.drivers.policy import ActionScale, PolicyDriver, save_policy
+from agent_client.drivers.spec import load_driver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
 from agent_client.errors import (
@@ -84,11 +86,15 @@ from agent_client.training.progress import (
 )
 from agent_client.training.run_log import RunLog
 from protocol.messages import Observation
+from protocol.version import ROAD_VERSION
 
 if TYPE_CHECKING:
     from agent_client.training.ray_collect import RayCollector
 
 T = TypeVar("T")
+
+PROBE_STEPS = 300
+"""Decisions of each scenario's first episode driven to see whether its lanes change."""
 
 __all__ = ["Progress", "QuietReporter", "Reporter", "Trainer"]
 
@@ -105,6 +111,7 @@ class Trainer:
         reporter: Reporter | None = None,
         retry_for_s: float = 0.0,
         eval_servers: Sequence[str] = (),
+        reset_timeout_s: float = RESET_TIMEOUT_S,
     ) -> None:
         """Train on one `server` address or several (one simulation each, stepped at once);
         evaluate on `eval_servers` in the background, or there while training waits with
@@ -127,8 +134,9 @@ class Trainer:
             options.setdefault("report_traffic", True)
         reward = config.reward_fn()
         self.vec = RemoteVectorEnv(
-            servers, config.scenario, reward=reward, timeout_s=timeout_s, **options
-        )
+            servers, config.scenarios, reward=reward, timeout_s=timeout_s,
+            reset_timeout_s=reset_timeout_s, **options,
+        )  # fmt: skip
         self.eval_servers = list(eval_servers)
         self.eval_pool: EvaluationPool | None = None
         """The evaluation servers' workers, one process per server; idle-priority ones when
@@ -136,7 +144,7 @@ class Trainer:
         try:
             if eval_servers:
                 self.eval_pool = EvaluationPool(
-                    eval_servers, config.scenario, config.reward, config.reward_params, options,
+                    eval_servers, config.scenarios, config.reward, config.reward_params, options,
                     timeout_s, idle_priority=config.eval_while_training,
                 )  # fmt: skip
             self._build(len(servers))
@@ -151,7 +159,10 @@ class Trainer:
         multi_lane = self._multi_lane()
         self._one_lane = not multi_lane
         """On one lane nobody passes the leader-at-entry: its ceiling bounds any driver's speed."""
-        features = config.features if config.features != "auto" else ("lc" if multi_lane else "cf")
+        features = config.features
+        if features == "auto":
+            road = self.env.welcome.protocol >= ROAD_VERSION
+            features = ("road" if road else "lc") if multi_lane else "cf"
         lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
         every = config.lane_decision_every if lane_change else 1
         self.features = FeatureMap(features, lane_phase_every=every)
@@ -166,6 +177,13 @@ class Trainer:
         )
         self.rng = np.random.default_rng(config.seed)
         self.idm = IDMDriver()
+        """Pre-training clones its actions."""
+        self.reference = load_driver(
+            config.reference if config.reference != "auto" else "idm+mobil" if multi_lane else "idm"
+        )
+        """The driver evaluations compare the policy with (`TrainConfig.reference`)."""
+        self.reference_figures: dict[str, dict[str, float]] = {}
+        """The reference's figures on each scenario's evaluation seeds."""
         self.warmup = WarmupDriver(
             config.warmup_policy, self.scale, config.learner.noise_sigma, self.rng
         )
@@ -227,8 +245,22 @@ class Trainer:
         self._started = time.monotonic()
 
     def _multi_lane(self) -> bool:
-        _, info = self.env.reset(seed=self.config.seed)
-        return bool(info["observation"].ego.lane_count > 1)
+        """Whether lanes can be changed on some scenario: a road of several lanes somewhere
+        within the first `PROBE_STEPS` decisions of an episode of each (an on-ramp's lanes
+        start after the ramp), driven by IDM."""
+        env, seed, idm = self.env, self.config.seed, IDMDriver()
+        for index in range(len(env.scenarios)):
+            probe = seed + (index - seed) % len(env.scenarios)  # a seed of scenario `index`
+            _, info = env.reset(seed=probe)
+            obs = info["observation"]
+            for _ in range(PROBE_STEPS):
+                if obs.ego.lane_count > 1 or (obs.road and obs.road.lanes_to_change):
+                    return True
+                if obs.terminated or obs.truncated:
+                    break
+                env.send_command(*idm.act(obs))
+                obs, _ = env.receive_observation()
+        return False
 
     # ----------------------------------------------------------------------- public
 
@@ -292,16 +324,17 @@ class Trainer:
         return self._stop_requested or self.progress.episode >= self.config.episodes
 
     def _prepare(self, log: RunLog) -> None:
-        """The IDM baseline (on the evaluation servers, else the training ones), an evaluation
-        a resumed run had under way, pre-training."""
+        """The reference's evaluation (on the evaluation servers, else the training ones), an
+        evaluation a resumed run had under way, pre-training."""
         if self.idm_eval is None and self.config.eval_every > 0:
             servers = len(self.eval_servers or self.vec.envs)
-            job = EvaluationJob("idm", self.idm, self._eval_seeds())
+            job = EvaluationJob("idm", self.reference, self._eval_seeds())
+            name = f"the reference ({getattr(self.reference, 'name', 'a policy')})"
             if self._background():
-                self.say(f"evaluating the IDM baseline in the background ({servers} servers)")
+                self.say(f"evaluating {name} in the background ({servers} servers)")
                 self._start_background(job)
             else:
-                self.say(f"evaluating the IDM baseline on the evaluation seeds ({servers} servers)")
+                self.say(f"evaluating {name} on the evaluation seeds ({servers} servers)")
                 summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
                 self._set_idm_baseline(summaries)
             self.collector.drop_episodes()
@@ -534,8 +567,32 @@ class Trainer:
     # ----------------------------------------------------------------------- evaluation
 
     def _eval_seeds(self) -> list[int]:
+        """`eval_episodes` seeds per scenario (a seed picks its scenario: `scenario_for`)."""
         cfg = self.config
-        return [cfg.eval_seed + index for index in range(cfg.eval_episodes)]
+        return [cfg.eval_seed + i for i in range(cfg.eval_episodes * len(cfg.scenarios))]
+
+    def _by_scenario(self, summaries: Sequence[EpisodeSummary]) -> dict[str, list[EpisodeSummary]]:
+        """Evaluation episodes grouped by the scenario of their seed (an episode's index is its
+        seed's in `_eval_seeds`; an insertion retry kept the scenario, not the seed)."""
+        seeds = self._eval_seeds()
+        groups: dict[str, list[EpisodeSummary]] = {}
+        for summary in summaries:
+            groups.setdefault(self.env.scenario_for(seeds[summary.episode]), []).append(summary)
+        return groups
+
+    def _targets(self, summaries: Sequence[EpisodeSummary]) -> tuple[dict[str, bool], str]:
+        """Which targets every scenario's episodes meet against its reference figures, and the
+        scenarios that failed one (``merge: arrives; exit: as_fast_as_idm``)."""
+        met: dict[str, bool] = {}
+        failed = []
+        for name, group in self._by_scenario(summaries).items():
+            verdict = targets_met(aggregate(group), self.reference_figures[name])
+            for target, passed in verdict.items():
+                met[target] = met.get(target, True) and passed
+            missed = [target for target, passed in verdict.items() if not passed]
+            if missed:
+                failed.append(f"{name}: {', '.join(missed)}")
+        return met, "; ".join(failed)
 
     def _policy_state(self) -> dict[str, Any]:
         return self.agent.policy_state_dict(self.config.deploy_averaged)
@@ -593,12 +650,13 @@ class Trainer:
         bounds an episode's steps, and on one lane IDM's ceilings bound every seed's speed."""
         assert self.idm_eval is not None
         options = self.env.scenario_options
+        routed = self.idm_eval.get("route_lanes", 0) > 0
         limit = _number(options.get("max_episode_time"))
         interval = _number(options.get("decision_interval"))  # the env's, as the server has it
         max_steps = math.ceil(limit / interval) + 10 if limit and interval else None
         ceilings = self.idm_ceilings
         bounds = ceilings if self._one_lane and ceilings and len(ceilings) == seeds else None
-        return FailureScreen(seeds, self.idm_eval["average_speed"], max_steps, bounds)
+        return FailureScreen(seeds, self.idm_eval["average_speed"], max_steps, bounds, routed)
 
     def _background(self) -> bool:
         """Whether evaluations run in the background (on evaluation servers of their own)."""
@@ -658,7 +716,11 @@ class Trainer:
                 self.profile.baseline_evaluation += waited
 
     def _set_idm_baseline(self, summaries: list[EpisodeSummary]) -> None:
+        """Keep the reference's figures: over all its episodes, per scenario, per seed."""
         self.idm_eval = aggregate(summaries)
+        self.reference_figures = {
+            name: aggregate(group) for name, group in self._by_scenario(summaries).items()
+        }
         ceilings = [s.ceiling_speed for s in summaries]
         self.idm_speeds = [s.average_speed for s in summaries]
         self.idm_ceilings = [c for c in ceilings if c is not None]
@@ -675,7 +737,7 @@ class Trainer:
             return
         assert self.idm_eval is not None
         result = aggregate(summaries)
-        met = targets_met(result, self.idm_eval)
+        met, failed_scenarios = self._targets(summaries)
         if job.stopped is not None:  # failed for certain, whatever the partial figures say
             met[job.stopped] = False
         complete = len(summaries) == len(job.seeds)
@@ -706,6 +768,7 @@ class Trainer:
             **{f"target_{name}": passed for name, passed in met.items()},
             "passed_in_a_row": progress.passed_in_a_row,
             "stopped": job.stopped or "",
+            "failed_scenarios": failed_scenarios if len(self.config.scenarios) > 1 else "",
             "episodes_saved": len(job.seeds) - len(summaries),
             "steps": steps,
             "seconds": seconds,
@@ -755,6 +818,7 @@ class Trainer:
             "rng": _plain(self.rng.bit_generator.state),
             "progress": _plain(dataclasses.asdict(self.progress)),
             "idm_eval": self.idm_eval,
+            "reference_figures": self.reference_figures,
             "idm_speeds": self.idm_speeds,
             "idm_ceilings": self.idm_ceilings,
             "config": self.config.to_dict(),
@@ -791,6 +855,9 @@ class Trainer:
         self.rng.bit_generator.state = state["rng"]
         self.progress = Progress(**state["progress"])
         self.idm_eval = state["idm_eval"]
+        self.reference_figures = state.get("reference_figures") or (
+            {self.config.scenarios[0]: self.idm_eval} if self.idm_eval else {}
+        )
         self.idm_speeds = state.get("idm_speeds") or []
         self.idm_ceilings = state.get("idm_ceilings")
         running = state.get("running_evaluation")

@@ -12,7 +12,7 @@ from typing import Protocol, Self
 from agent_client.errors import InvalidReply, ServerError
 from protocol.codec import decode_reply, encode
 from protocol.errors import ProtocolError
-from protocol.messages import Error, Hello, Reply, Request, Welcome
+from protocol.messages import Error, Hello, MultiStep, Reply, Request, Reset, Step, Welcome
 from protocol.version import PROTOCOL_VERSION
 
 CLIENT_NAME = "agent_client"
@@ -42,6 +42,9 @@ class Channel(ABC):
     tap: FrameTap | None = None
     """What records this channel's frames (`agent_client.transport.recording`), or None: then
     recording costs one attribute test per frame."""
+    answered = False
+    """The server has answered on this channel: a reply that is late now comes from a server
+    that is up and still working (`no_reply`), not from one that may be down."""
 
     @abstractmethod
     def send_raw(self, frame: bytes) -> None:
@@ -89,6 +92,7 @@ class Channel(ABC):
         """Second half of `request`: the decoded reply to what `send` sent (the tap sees its
         frame before it is checked, so a malformed reply is recorded too)."""
         frame = self.receive_frame(timeout_s)
+        self.answered = True
         if self.tap is not None:
             self.tap.reply(frame)
         try:
@@ -106,6 +110,30 @@ class Channel(ABC):
         if isinstance(reply, Error):
             raise ServerError(reply.code, reply.message)
         return reply
+
+    def no_reply(self, wait_s: float) -> str:
+        """Why a receive timed out: a server that has answered before is up and still working
+        on the request (say what to raise); one that never has may be down or unreachable."""
+        if not self.answered:
+            return (
+                f"no reply from {self.address} within {wait_s:.1f} s "
+                "(is sim-server running and reachable?)"
+            )
+        sent = self.sent
+        what = (
+            "the reset"
+            if isinstance(sent, Reset)
+            else f"step {sent.seq}"
+            if isinstance(sent, Step | MultiStep)
+            else "the request"
+        )
+        deadline = "--reset-timeout" if isinstance(sent, Reset) else "--timeout"
+        return (
+            f"{self.address} is up (it has answered this session and its connection is alive) "
+            f"but sent no reply to {what} within {wait_s:.1f} s: it may still be working on it "
+            "(a large network, a long warm-up, an ego waiting to enter, the end of an episode); "
+            f"give it longer: {deadline} SECONDS (RemoteEnv's reset_timeout_s / timeout_s)"
+        )
 
     def hello(self, timeout_s: float | None = None, client: str = CLIENT_NAME) -> Welcome:
         """Handshake: announce our protocol version and receive the server's schemas."""

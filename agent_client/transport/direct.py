@@ -125,10 +125,7 @@ class DirectChannel(Channel):
             remaining_ms = max(0.0, deadline - time.monotonic()) * 1000
             if not poller.poll(remaining_ms):
                 self.drop()  # Lazy Pirate: the next request goes out on a fresh connection
-                raise ServerTimeout(
-                    f"no reply from {self.address} within {wait_s:.1f} s "
-                    "(is sim-server running and reachable?)"
-                )
+                raise ServerTimeout(self.no_reply(wait_s))
             try:
                 data = sock.recv(_RECEIVE_BYTES)
             except OSError as exc:

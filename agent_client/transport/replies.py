@@ -25,6 +25,7 @@ from dataclasses import fields, replace
 from agent_client.errors import InvalidReply
 from protocol.errors import ErrorCode
 from protocol.messages import (
+    ROAD_RANGE,
     AccelerationLimit,
     AppliedAction,
     Bye,
@@ -299,7 +300,7 @@ def ego_observation(frame: MultiObservation, ego: EgoObservation) -> Observation
     the ego's own state, events, action and end (what rewards and drivers take)."""
     return Observation(
         frame.seq, frame.time, ego.ego, ego.neighbours, ego.events, ego.action,
-        ego.terminated, ego.truncated, ego.reason, traffic=frame.traffic,
+        ego.terminated, ego.truncated, ego.reason, traffic=frame.traffic, road=ego.road,
     )  # fmt: skip
 
 
@@ -363,6 +364,7 @@ class _ObservationRules:
         self.ending()
         self.ego()
         self.neighbours()
+        self.road()
         self.events()
         if isinstance(request, Step):
             self.action(request)
@@ -429,6 +431,37 @@ class _ObservationRules:
             self.rule(f"{self.where}.ego.changing_lane", ego.changing_lane, "-1, 0 or 1 (§4.2)")
         if not ego.speed_limit > 0:
             self.rule(f"{self.where}.ego.speed_limit", ego.speed_limit, "> 0 m/s (§4.2)")
+
+    def road(self) -> None:
+        """The road ahead (§4.9, since 1.6): distances within [0, ROAD_RANGE], none beside the
+        ego where there is no lane, a lane to change to that exists."""
+        road = self.obs.road
+        if road is None:
+            return
+        lane, lanes = self.obs.ego.lane, self.obs.ego.lane_count
+        where = f"{self.where}.road"
+        top = ROAD_RANGE * (1 + TOLERANCE)
+        for name in ("lane_end", "left_lane_end", "right_lane_end"):
+            value = getattr(road, name)
+            if not 0 <= value <= top:
+                self.rule(f"{where}.{name}", value, f"within [0, {ROAD_RANGE:g}] m (§4.9)")
+        for name, value, side, missing in (
+            ("left_lane_end", road.left_lane_end, "left", lane >= lanes - 1),
+            ("right_lane_end", road.right_lane_end, "right", lane <= 0),
+        ):
+            if missing and value != 0:
+                self.rule(
+                    f"{where}.{name}",
+                    value,
+                    f"0: there is no lane to the {side} of lane {lane} of {lanes} (§4.9)",
+                )
+        if not -lane <= road.lanes_to_change <= lanes - 1 - lane:
+            self.rule(
+                f"{where}.lanes_to_change",
+                road.lanes_to_change,
+                f"a lane of the road from lane {lane} of {lanes}: within "
+                f"{-lane}..{lanes - 1 - lane} (§4.9)",
+            )
 
     def neighbours(self) -> None:
         obs, sensed = self.obs, self.welcome.sensor_range

@@ -102,7 +102,7 @@ class ZmqChannel(Channel):
                 continue
             if time.monotonic() < deadline:
                 continue
-            raise ServerTimeout(_no_reply(self.address, wait_s, discarded))
+            raise ServerTimeout(self._no_reply(wait_s, discarded))
         if len(frames) != 1:
             self._drop_socket()
             raise MalformedReply(f"reply from {self.address} has {len(frames)} frames, expected 1")
@@ -110,6 +110,17 @@ class ZmqChannel(Channel):
 
     def drop(self) -> None:
         self._drop_socket()
+
+    def _no_reply(self, wait_s: float, discarded: int) -> str:
+        """Why a receive timed out (`Channel.no_reply`), naming the messages the REQ socket
+        discarded meanwhile: then the server answers, but not this request."""
+        if not discarded:
+            return self.no_reply(wait_s)
+        return (
+            f"no reply from {self.address} within {wait_s:.1f} s: {discarded} message(s) "
+            "arrived without this request's id and were discarded (does the server echo the "
+            "whole envelope, request-id frame included? docs/protocol.md §7.1)"
+        )
 
     def _check_events(self, waiting: bool) -> None:
         """Read the socket's pending events; raise if the connection broke or was refused.
@@ -174,15 +185,3 @@ class ZmqChannel(Channel):
         """Close the socket and the context; never blocks."""
         self._drop_socket()
         self._context.term()
-
-
-def _no_reply(address: str, wait_s: float, discarded: int) -> str:
-    """Why a receive timed out, naming the messages the REQ socket discarded meanwhile."""
-    text = f"no reply from {address} within {wait_s:.1f} s"
-    if not discarded:
-        return text + " (is sim-server running and reachable?)"
-    return (
-        f"{text}: {discarded} message(s) arrived without this request's id and were discarded "
-        "(does the server echo the whole envelope, request-id frame included? "
-        "docs/protocol.md §7.1)"
-    )

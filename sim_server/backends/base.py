@@ -31,6 +31,7 @@ __all__ = [
     "BackendError",
     "Commands",
     "as_multi",
+    "ego_part",
 ]
 
 DEFAULT_SENSOR_RANGE = 200.0
@@ -47,12 +48,17 @@ Commands = Mapping[str, tuple[float, int]]
 """A `MultiStep`'s commands by ego id: (acceleration not yet clipped, lane change)."""
 
 
+def ego_part(ego_id: str, obs: Observation) -> EgoObservation:
+    """One ego's part of a `MultiObservation`: its observation `obs` without the clock."""
+    return EgoObservation(
+        ego_id, obs.ego, obs.neighbours, obs.events, obs.action,
+        obs.terminated, obs.truncated, obs.reason, obs.road,
+    )  # fmt: skip
+
+
 def as_multi(obs: Observation, ego_id: str = SINGLE_EGO_ID) -> MultiObservation:
     """A one-ego observation as the `MultiObservation` of a one-ego episode."""
-    mine = EgoObservation(
-        ego_id, obs.ego, obs.neighbours, obs.events, obs.action,
-        obs.terminated, obs.truncated, obs.reason,
-    )  # fmt: skip
+    mine = ego_part(ego_id, obs)
     return MultiObservation(
         obs.seq, obs.time, (mine,), obs.terminated, obs.truncated, obs.reason, obs.traffic
     )

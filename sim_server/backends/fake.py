@@ -1,8 +1,11 @@
 """A tiny kinematic car-following simulator for fast tests: no SUMO, pure Python.
 
 One lane, one leader whose speed follows a seeded random walk, an ego that obeys its acceleration
-commands exactly. It applies the same rules as the SUMO backend (`rules`), so server and client
-logic can be tested in milliseconds; it never replaces SUMO in integration tests.
+commands exactly. With the option ``lane_end`` the ego's lane ends before the road does: the road
+ahead (protocol 1.6) reports it, and an ego that reaches it stops there (as SUMO stops a vehicle at
+the end of a lane that does not lead on) until ``lane_end_patience`` ends the episode. It applies
+the same rules as the SUMO backend (`rules`), so server and client logic can be tested in
+milliseconds; it never replaces SUMO in integration tests.
 
 Many egos (protocol 1.4, a reset naming ``egos`` > 1): ``ego.0``, ``ego.1``, ... drive in one
 column behind the leader, each following the one ahead (`_Column`). Each is judged alone: an ego
@@ -14,12 +17,14 @@ truncates every ego still driving. ``egos`` 1 is the one-ego episode, under the 
 from __future__ import annotations
 
 import random
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 from protocol.errors import ErrorCode
 from protocol.messages import (
+    ROAD_RANGE,
     AppliedAction,
     Ego,
     EgoObservation,
@@ -31,9 +36,10 @@ from protocol.messages import (
     Neighbours,
     Observation,
     OptionValue,
+    Road,
     ScenarioInfo,
 )
-from sim_server.backends.base import Backend, Commands
+from sim_server.backends.base import Backend, Commands, ego_part
 from sim_server.backends.options import COMMON_OPTIONS, Bounds, EpisodeOptions, ParsedOptions
 from sim_server.backends.rules import EndRule, ended, lane_change_refusal, limit_acceleration
 from sim_server.errors import BackendError
@@ -46,6 +52,8 @@ MAX_FAKE_EGOS = 32
 EGO_SPACING = (20.0, 40.0)
 """Net gaps (m) between consecutive egos at reset, drawn uniformly."""
 LEADER_ID = "leader"
+FAKE_ROAD = Road(ROAD_RANGE, 0, 0.0, 0.0)
+"""The open road of the fake's one lane: no lane beside it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,9 +62,15 @@ class RoadOptions(ParsedOptions):
 
     length: float = 1000.0
     """Metres from the ego's start to the end of the road."""
+    lane_end: float = 0.0
+    """Metres from the road's start to where the ego's lane ends (0: it does not)."""
+    reset_seconds: float = 0.0
+    """Wall-clock seconds a reset takes, as a large network's does: for tests of deadlines."""
 
     BOUNDS: ClassVar[Mapping[str, Bounds]] = {
         "length": Bounds(0.0, 100_000.0, low_excluded=True),
+        "lane_end": Bounds(0.0, 100_000.0),
+        "reset_seconds": Bounds(0.0, 60.0),
     }
 
 
@@ -67,6 +81,7 @@ _SHARED = (
     "stop_speed",
     "stop_gap",
     "stop_patience",
+    "lane_end_patience",
     "report_ceiling",
     "egos",
 )
@@ -90,9 +105,24 @@ class _State:
     options: EpisodeOptions
     substeps: int
     length: float
+    lane_end: float
     end: EndRule
     rng: random.Random
     done: bool = False
+
+
+def _road(lane_end: float, position: float) -> Road:
+    """The road ahead on the fake's one lane: open, or ending `lane_end` m from the start."""
+    if not lane_end:
+        return FAKE_ROAD
+    return Road(min(ROAD_RANGE, max(0.0, lane_end - position)), 0, 0.0, 0.0)
+
+
+def _stop_at(lane_end: float, position: float, speed: float) -> tuple[float, float]:
+    """An ego that reached the end of its lane stands there."""
+    if lane_end and position >= lane_end:
+        return lane_end, 0.0
+    return position, speed
 
 
 def _one_lane() -> tuple[int, int]:
@@ -142,7 +172,8 @@ class _Column:
         self, ids: tuple[str, ...], seed: int, options: dict[str, OptionValue], backend: Backend
     ) -> None:
         episode = EpisodeOptions.parse(options)
-        self.length = RoadOptions.parse(options).length
+        road = RoadOptions.parse(options)
+        self.length, self.lane_end = road.length, road.lane_end
         self.rng = rng = random.Random(seed)
         self.sensor_range = backend.sensor_range
         self.low = backend.action_schema.acceleration_min
@@ -217,6 +248,7 @@ class _Column:
                 car.pos += car.speed * DT + 0.5 * acc * DT * DT
                 car.speed = max(0.0, car.speed + acc * DT)  # standstill: -speed / DT, exactly 0
                 car.acc = acc
+                car.pos, car.speed = _stop_at(self.lane_end, car.pos, car.speed)
             self.lead_speed = min(SPEED_LIMIT, max(0.0, self.lead_speed + self.rng.gauss(0, 0.3)))
             self.lead_pos += self.lead_speed * DT
             self.time = round(self.time + DT, 6)
@@ -259,6 +291,7 @@ class _Column:
             neighbours=Neighbours(absent, absent, leader, follower, absent, absent),
             events=events,
             action=action,
+            road=_road(self.lane_end, car.pos),
         )
 
     def _report(self, seq: int, observations: list[Observation]) -> MultiObservation:
@@ -267,7 +300,7 @@ class _Column:
         Truncated when the time limit came (it truncates every ego still driving); terminated
         when no ego is left, with the reason of the last one listed that ended."""
         egos = tuple(
-            _ego_observation(car.id, obs) for car, obs in zip(self.cars, observations, strict=True)
+            ego_part(car.id, obs) for car, obs in zip(self.cars, observations, strict=True)
         )
         self.cars = [car for car, e in zip(self.cars, egos, strict=True) if not _over(e)]
         if any(e.truncated for e in egos):
@@ -277,14 +310,6 @@ class _Column:
             self.done = True
             return MultiObservation(seq, self.time, egos, True, False, egos[-1].reason)
         return MultiObservation(seq, self.time, egos)
-
-
-def _ego_observation(ego_id: str, obs: Observation) -> EgoObservation:
-    """One ego's part of a frame: `obs` without the clock."""
-    return EgoObservation(
-        ego_id, obs.ego, obs.neighbours, obs.events, obs.action,
-        obs.terminated, obs.truncated, obs.reason,
-    )  # fmt: skip
 
 
 def _over(ego: EgoObservation) -> bool:
@@ -313,7 +338,9 @@ class FakeBackend(Backend):
     def reset(self, scenario: str, seed: int, options: dict[str, OptionValue]) -> Observation:
         self._column = None
         episode = EpisodeOptions.parse(options)
-        length = RoadOptions.parse(options).length
+        road = RoadOptions.parse(options)
+        if road.reset_seconds:
+            time.sleep(road.reset_seconds)
         rng = random.Random(seed)
         speed = rng.uniform(10.0, 18.0)
         self._state = _State(
@@ -326,7 +353,8 @@ class FakeBackend(Backend):
             lead_arrival=None,
             options=episode,
             substeps=episode.steps_per_decision(DT),
-            length=length,
+            length=road.length,
+            lane_end=road.lane_end,
             end=EndRule(episode, entry_time=episode.warmup),
             rng=rng,
         )
@@ -391,6 +419,9 @@ class FakeBackend(Backend):
             state.ego_pos += state.ego_speed * DT + 0.5 * acc * DT * DT
             state.ego_speed = max(0.0, state.ego_speed + acc * DT)  # standstill: exactly 0
             state.ego_acc = acc
+            state.ego_pos, state.ego_speed = _stop_at(
+                state.lane_end, state.ego_pos, state.ego_speed
+            )
             state.lead_speed = min(
                 SPEED_LIMIT, max(0.0, state.lead_speed + state.rng.gauss(0, 0.3))
             )
@@ -429,6 +460,7 @@ class FakeBackend(Backend):
             neighbours=Neighbours(absent, absent, leader, absent, absent, absent),
             events=events,
             action=action,
+            road=_road(state.lane_end, state.ego_pos),
         )
 
     def close(self) -> None:

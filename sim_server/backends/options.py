@@ -124,6 +124,10 @@ class EpisodeOptions(ParsedOptions):
     """Metres; see `stop_speed`."""
     stop_patience: float = 2.0
     """Seconds; see `stop_speed`."""
+    lane_end_patience: float = 10.0
+    """Seconds the ego may stand (slower than `stop_speed`) within `stop_gap` of the end of a
+    lane that does not continue its route, waiting for a gap; then ``lane_end`` (since protocol
+    1.6)."""
     report_ceiling: bool = True
     """Report the leader-at-entry's trip on the last observation."""
     ego_driver: str = "agent"
@@ -140,6 +144,7 @@ class EpisodeOptions(ParsedOptions):
         "stop_speed": Bounds(0.0, 100.0),
         "stop_gap": Bounds(0.0, 10_000.0),
         "stop_patience": Bounds(0.0, 3600.0),
+        "lane_end_patience": Bounds(0.0, 3600.0),
         "egos": Bounds(1, MAX_EGOS),
     }
 

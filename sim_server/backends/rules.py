@@ -91,17 +91,22 @@ def lane_change_refusal(
 class EndRule:
     """When an episode ends, judged on each observation after a step.
 
-    In this order: a collision; the end of the road; an unreasonable stop (slower than
-    ``stop_speed`` for ``stop_patience`` seconds, with no leader or one more than ``stop_gap``
-    ahead and faster); ``max_episode_time`` seconds after the ego's entry (the only truncation).
+    In this order: a collision; the end of the road; a stand at the end of a lane that does
+    not continue the ego's route (slower than ``stop_speed`` within ``stop_gap`` of its end,
+    `Observation.road`, for ``lane_end_patience`` seconds: a merge not made, an exit missed);
+    an unreasonable stop (slower than ``stop_speed`` for ``stop_patience`` seconds, with no
+    leader or one more than ``stop_gap`` ahead and faster, away from a lane end);
+    ``max_episode_time`` seconds after the ego's entry (the only truncation).
     """
 
     __slots__ = (
         "_entry_time",
+        "_lane_end_patience",
         "_stop_gap",
         "_stop_patience",
         "_stop_speed",
         "_time_limit",
+        "at_lane_end_since",
         "stopped_since",
     )
 
@@ -109,10 +114,13 @@ class EndRule:
         self._stop_speed = options.stop_speed
         self._stop_gap = options.stop_gap
         self._stop_patience = options.stop_patience - _EPSILON_S
+        self._lane_end_patience = options.lane_end_patience - _EPSILON_S
         self._entry_time = entry_time
         self._time_limit = options.max_episode_time - _EPSILON_S
         self.stopped_since: float | None = None
         """Time of the first observation of the current stop (None: not stopped)."""
+        self.at_lane_end_since: float | None = None
+        """Time of the first observation of the current stand at a lane end (None: none)."""
 
     @property
     def entry_time(self) -> float:
@@ -125,11 +133,27 @@ class EndRule:
             return EndReason.COLLISION
         if obs.events.end_of_road:
             return EndReason.END_OF_ROAD
-        if self._stopped(obs):
+        standing = self._standing_at_lane_end(obs)
+        if standing is not None:
+            if standing >= self._lane_end_patience:
+                return EndReason.LANE_END
+            self.stopped_since = None  # waiting there for a gap is no unreasonable stop
+        elif self._stopped(obs):
             return EndReason.STOPPED
         if obs.time - self._entry_time >= self._time_limit:
             return EndReason.TIME_LIMIT
         return None
+
+    def _standing_at_lane_end(self, obs: Observation) -> float | None:
+        """Seconds the ego has stood (slower than ``stop_speed``) within ``stop_gap`` of the
+        end of its lane, or None when it does not."""
+        road = obs.road
+        if road is None or road.lane_end > self._stop_gap or obs.ego.speed >= self._stop_speed:
+            self.at_lane_end_since = None
+            return None
+        if self.at_lane_end_since is None:
+            self.at_lane_end_since = obs.time
+        return obs.time - self.at_lane_end_since
 
     def _stopped(self, obs: Observation) -> bool:
         leader = obs.neighbours.leader

@@ -21,8 +21,9 @@ import numpy as np
 import pytest
 import zmq
 
+from agent_client.defaults import RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.envs.remote_env import RemoteEnv
-from agent_client.errors import ServerError, ServerLost
+from agent_client.errors import ServerError, ServerLost, ServerTimeout
 from agent_client.transport import ZmqChannel
 from protocol.codec import encode
 from protocol.messages import Close, Error, Welcome
@@ -246,3 +247,51 @@ def test_training_survives_a_server_restart_and_keeps_its_progress(tmp_path: Pat
     progress = load_checkpoint(out / "checkpoint.pt")["progress"]
     assert progress["reconnects"] >= 1
     assert progress["global_step"] >= steps[-1]
+
+
+# --------------------------------------------------------------------------- slow resets
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scheme", ["tcp", "direct"])
+def test_a_reset_slower_than_the_step_deadline_is_waited_for_by_default(scheme: str) -> None:
+    """A large network's reset takes longer than a step may: the reset has its own deadline."""
+    with sim_server("--backend", "fake", bind=f"{scheme}://127.0.0.1:0") as server:
+        env = RemoteEnv(server.address, "cf", reward=lambda *_: 0.0)
+        try:
+            assert env.timeout_s == STEP_TIMEOUT_S < RESET_TIMEOUT_S == env.reset_timeout_s
+            started = time.monotonic()
+            _, info = env.reset(seed=1, options={"reset_seconds": STEP_TIMEOUT_S + 1.0})
+            assert time.monotonic() - started > STEP_TIMEOUT_S
+            assert info["observation"].seq == 0
+        finally:
+            env.close()
+
+
+@pytest.mark.parametrize("scheme", ["tcp", "direct"])
+def test_a_late_reply_names_the_live_server_and_the_deadline_to_raise(scheme: str) -> None:
+    with sim_server("--backend", "fake", bind=f"{scheme}://127.0.0.1:0") as server:
+        env = RemoteEnv(server.address, "cf", reward=lambda *_: 0.0, reset_timeout_s=0.5)
+        try:
+            with pytest.raises(ServerTimeout) as late:
+                env.reset(seed=1, options={"reset_seconds": 2.0})
+            message = str(late.value)
+            assert f"{server.address} is up" in message and "--reset-timeout" in message
+            assert "is sim-server running" not in message
+            env.reset_timeout_s = 10.0
+            _, info = env.reset(seed=2)  # the server goes on serving once it is done
+            assert info["observation"].seq == 0
+        finally:
+            env.close()
+
+
+def test_a_server_that_never_answered_may_be_down() -> None:
+    with socket.socket() as unused:
+        unused.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{unused.getsockname()[1]}"
+    channel = ZmqChannel(address, timeout_s=0.3)
+    try:
+        with pytest.raises(ServerTimeout, match="is sim-server running and reachable"):
+            channel.hello()
+    finally:
+        channel.close()

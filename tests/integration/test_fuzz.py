@@ -20,7 +20,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +53,7 @@ from protocol.messages import (
     Step,
     Welcome,
 )
-from protocol.schema import OBSERVATION_FIELDS
+from protocol.schema import OBSERVATION_FIELDS, fields_for
 from protocol.transport.zeromq import SOCKET_MAX_BYTES
 from protocol.version import PROTOCOL_VERSION
 from tests.agent_client.conformance.toys import zero_reward
@@ -184,7 +184,9 @@ class SessionModel:
         if isinstance(request, Hello):
             if request.protocol[0] != PROTOCOL_VERSION[0]:
                 return expect(reply, ErrorCode.VERSION_MISMATCH)
-            assert data == encode(self.welcome)
+            # a client older than 1.6 is announced the flat vector of its version (§4.6)
+            fields = fields_for(request.protocol)
+            assert data == encode(replace(self.welcome, observation_fields=fields))
             self.owner, self.episode = True, None
         elif not self.owner:
             expect(reply, ErrorCode.OUT_OF_ORDER)

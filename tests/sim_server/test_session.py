@@ -71,6 +71,20 @@ def test_handshake_announces_versions_schema_and_scenarios(session: Session) -> 
     assert welcome.max_frame_bytes == 4096
 
 
+@pytest.mark.parametrize(("version", "fields"), [((1, 5), 32), ((1, 0), 32), ((1, 6), 36)])
+def test_a_client_is_announced_the_flat_vector_of_its_version(
+    session: Session, version: tuple[int, int], fields: int
+) -> None:
+    """A 1.5 client refuses a field it does not know: it is not told of the road's four."""
+    welcome = ask(session, Hello(version))
+    assert isinstance(welcome, Welcome)
+    assert len(welcome.observation_fields) == fields
+    assert welcome.protocol == PROTOCOL_VERSION
+    obs = ask(session, Reset("cf", 1))
+    assert isinstance(obs, Observation)
+    assert obs.road is not None  # the named observation carries it; older readers skip it
+
+
 def test_major_version_mismatch_is_refused_naming_both(session: Session) -> None:
     reply = ask(session, Hello((PROTOCOL_VERSION[0] + 1, 0)))
     assert error_code(reply) == "version_mismatch"

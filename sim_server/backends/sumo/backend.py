@@ -69,6 +69,7 @@ from sim_server.backends.rules import (
     limit_acceleration,
 )
 from sim_server.backends.sumo import ssm
+from sim_server.backends.sumo.corridors import CORRIDORS, CorridorScenario
 from sim_server.backends.sumo.egos import (
     QUIET,
     Drive,
@@ -79,6 +80,7 @@ from sim_server.backends.sumo.egos import (
     ego_ids,
     multi_observation,
 )
+from sim_server.backends.sumo.road import carried, road_ahead
 from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
 from sim_server.backends.sumo.scenarios import (
     BUILTIN_SCENARIOS,
@@ -92,6 +94,7 @@ from sim_server.backends.sumo.scenarios import (
     RingScenario,
     RoadScenario,
     Scenario,
+    ScenarioFiles,
     build_ring,
     build_road,
     default_cache_dir,
@@ -103,6 +106,9 @@ SPEED_MODE_NO_CHECKS = 32
 LANE_CHANGE_MODE_REQUESTS_ONLY = 512
 CEILING_HORIZON = 3600.0
 """Longest extra simulated time (s) spent waiting for the leader-at-entry to arrive."""
+CEILING_MIN_SPEED = 5.0
+"""The slowest average speed (m/s) the leader-at-entry is waited for over its remaining route:
+a leader that needs longer (held in a jam) leaves the ceiling unknown."""
 
 # Command-line options forced on every scenario, also a user's own .sumocfg.
 _FORCED_ARGS = [
@@ -113,6 +119,9 @@ _FORCED_ARGS = [
     "--no-step-log", "true",
     "--no-warnings", "true",
 ]  # fmt: skip
+
+AnyScenario = Scenario | CorridorScenario
+"""What a reset may load: a straight road, the ring, a corridor, or a user's own .sumocfg."""
 
 _ABSENT = Neighbour(present=False, gap=0.0, lateral=0.0, speed=0.0)
 
@@ -196,7 +205,10 @@ class SumoBackend(Backend):
         if gui:
             check_display()
         self._cache_dir = cache_dir or default_cache_dir()
-        self._scenarios: dict[str, Scenario] = {**BUILTIN_SCENARIOS}
+        self._scenarios: dict[str, AnyScenario] = {
+            **BUILTIN_SCENARIOS,
+            **CORRIDORS,
+        }
         for scenario in custom:
             self._scenarios[scenario.name] = scenario
         over_traci = OverTraci(gui, traci_port, traci_host, sumo_binary, view) if traci else None
@@ -278,7 +290,8 @@ class SumoBackend(Backend):
         multi-ego reply carries once)."""
         chosen = self._scenarios[scenario]
         episode_options = EpisodeOptions.parse(options)
-        traffic = TrafficOptions.parse(options) if isinstance(chosen, RoadScenario) else None
+        on_road = isinstance(chosen, RoadScenario | CorridorScenario)
+        traffic = TrafficOptions.parse(options) if on_road else None
         layout = RingOptions.parse(options) if isinstance(chosen, RingScenario) else None
         measures = MeasureOptions.parse(options)
         slots = layout.ego_slots(len(ids)) if layout is not None else ()
@@ -288,10 +301,10 @@ class SumoBackend(Backend):
             )
         self._episode = None
         try:
-            config, route = self._files(chosen, traffic or layout, slots)
+            files = self._files(chosen, options, seed, slots)
             log = self._new_ssm_log() if measures.ssm else None
             device = ssm.device_args(EGO_ID, log) if log is not None else []
-            self._load(["-c", str(config), "--seed", str(seed), *_FORCED_ARGS, *device])
+            self._load(["-c", str(files.config), "--seed", str(seed), *_FORCED_ARGS, *device])
             self._drop_old_logs(keep=log)
             if layout is not None:
                 first = self._place_egos(layout, slots, ids, episode_options, measures, many)
@@ -300,7 +313,7 @@ class SumoBackend(Backend):
                 first = self._hand_over_share(draw, episode_options, measures, traffic is not None)
             else:
                 first = self._insert_egos(
-                    route, ids, episode_options, measures, one_way=traffic is not None, many=many
+                    files, ids, episode_options, measures, one_way=traffic is not None, many=many
                 )
             assert self._episode is not None
             self._episode.ssm_log = log
@@ -314,21 +327,23 @@ class SumoBackend(Backend):
 
     def _files(
         self,
-        scenario: Scenario,
-        parsed: TrafficOptions | RingOptions | None,
+        scenario: AnyScenario,
+        options: dict[str, OptionValue],
+        seed: int,
         ego_slots: tuple[int, ...] = (0,),
-    ) -> tuple[Path, str]:
-        """The scenario's .sumocfg (a built-in one built from its `parsed` options; the ring's
-        humans leave `ego_slots` free) and the egos' route (the ring's egos are placed by
-        `_place_egos` instead)."""
+    ) -> ScenarioFiles:
+        """The scenario's files: a built-in one's built from its `options` (a corridor's
+        geometry drawn from the `seed`; the ring's humans leave `ego_slots` free), and the
+        egos' route (the ring's egos are placed by `_place_egos` instead)."""
         if isinstance(scenario, CustomScenario):
-            return scenario.sumocfg, scenario.ego_route
+            return ScenarioFiles(scenario.sumocfg, scenario.ego_route)
+        cache = self._cache_dir
         try:
             if isinstance(scenario, RingScenario):
-                assert isinstance(parsed, RingOptions)
-                return build_ring(scenario, parsed, self._cache_dir, ego_slots), ""
-            assert isinstance(parsed, TrafficOptions)
-            return build_road(scenario, parsed, self._cache_dir), EGO_ROUTE
+                return ScenarioFiles(build_ring(scenario, options, cache, ego_slots), "")
+            if isinstance(scenario, CorridorScenario):
+                return scenario.files(options, seed, cache)
+            return ScenarioFiles(build_road(scenario, options, cache), EGO_ROUTE)
         except (OSError, RuntimeError) as exc:
             raise BackendError(
                 ErrorCode.SIMULATOR_ERROR, f"could not build scenario {scenario.name}: {exc}"
@@ -348,7 +363,7 @@ class SumoBackend(Backend):
 
     def _insert_egos(
         self,
-        route: str,
+        files: ScenarioFiles,
         ids: tuple[str, ...],
         options: EpisodeOptions,
         measures: MeasureOptions,
@@ -356,10 +371,11 @@ class SumoBackend(Backend):
         one_way: bool,
         many: bool,
     ) -> list[Observation]:
-        """Warm up, insert the egos one after another at the start of `route` (each as soon as
-        SUMO can) and observe them (seq 0). An ego waiting for the next to enter is driven by
-        SUMO with its safety checks on; they all go off at the hand-over, when the last has
-        entered. The leader-at-entry (the ceiling) is the one ego's only."""
+        """Warm up, insert the egos one after another at the start of their route (each as soon
+        as SUMO can, in the lane `files` says) and observe them (seq 0). An ego waiting for the
+        next to enter is driven by SUMO with its safety checks on; they all go off at the
+        hand-over, when the last has entered. The leader-at-entry (the ceiling) is the one ego's
+        only."""
         api = self._api
         dt = api.simulation.getDeltaT()
         substeps = options.steps_per_decision(dt)
@@ -367,7 +383,7 @@ class SumoBackend(Backend):
         offsets = []
         for k, ego_id in enumerate(ids):
             last = k == len(ids) - 1
-            self._add_ego(ego_id, route, options.simulator_drives, checks_off=last)
+            self._add_ego(ego_id, files, options.simulator_drives, checks_off=last)
             self._wait_for_entry(ego_id, options.insertion_timeout, ids[:k])
             offsets.append(api.vehicle.getLanePosition(ego_id))
         if not options.simulator_drives:
@@ -376,7 +392,7 @@ class SumoBackend(Backend):
         first = ids[0]
         edges = api.vehicle.getRoute(first)
         route_length = sum(api.lane.getLength(f"{edge}_0") for edge in edges)
-        leader_id = "" if many else (api.vehicle.getLeader(first, route_length) or ("", 0.0))[0]
+        leader_id = "" if many else self._leader_at_entry(first, edges, route_length)
         entry_time = api.simulation.getTime()
         egos = [
             EgoState(ego_id, EndRule(options, entry_time), offset, api.vehicle.getMinGap(ego_id))
@@ -397,6 +413,14 @@ class SumoBackend(Backend):
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
         return [self._observe(episode, ego, 0, Events(), action, not many) for ego in egos]
+
+    def _leader_at_entry(self, ego_id: str, route: Any, route_length: float) -> str:
+        """The vehicle directly ahead of the ego at its entry, if it drives the ego's whole
+        route: only then does its trip bound the ego's (a leader that turns off, or came from
+        elsewhere, bounds nothing); "" otherwise."""
+        vehicle = self._api.vehicle
+        leader = (vehicle.getLeader(ego_id, route_length) or ("", 0.0))[0]
+        return leader if leader and tuple(vehicle.getRoute(leader)) == tuple(route) else ""
 
     def _place_egos(
         self,
@@ -524,7 +548,9 @@ class SumoBackend(Backend):
                 f"only {len(entered)} of the ring's {vehicles} vehicles could be placed",
             )
 
-    def _add_ego(self, ego_id: str, route: str, sumo_drives: bool, checks_off: bool) -> None:
+    def _add_ego(
+        self, ego_id: str, files: ScenarioFiles, sumo_drives: bool, checks_off: bool
+    ) -> None:
         """Ask SUMO to insert an ego now: the client's (SUMO's own lane changes off, its safety
         checks too if `checks_off`, else at the hand-over) or a human."""
         api = self._api
@@ -536,8 +562,8 @@ class SumoBackend(Backend):
             if EGO_TYPE not in types:
                 self._define_ego_type()
         api.vehicle.add(
-            ego_id, route, typeID=type_id, depart="now",
-            departLane="random", departPos="base", departSpeed="max",
+            ego_id, files.ego_route, typeID=type_id, depart="now",
+            departLane=files.depart_lane, departPos="base", departSpeed="max",
         )  # fmt: skip
         if not sumo_drives:
             if checks_off:
@@ -926,7 +952,7 @@ class SumoBackend(Backend):
         closed: load the small built-in ``cf`` road (not the scenario again, whose own outputs
         would be overwritten), read the log, delete it. Over TraCI a load is acknowledged before
         the old simulation has closed; a round trip after it waits for that."""
-        config, _ = self._files(BUILTIN_SCENARIOS["cf"], TrafficOptions())
+        config = self._files(BUILTIN_SCENARIOS["cf"], {}, 0).config
         self._load(["-c", str(config), *_FORCED_ARGS])
         self._api.simulation.getTime()
         try:
@@ -937,10 +963,12 @@ class SumoBackend(Backend):
             log.unlink(missing_ok=True)
 
     def _leader_trip(self, episode: _Episode) -> LeaderTrip | None:
+        """The leader-at-entry's trip: the simulation runs on (without the ego) until it
+        arrives, for at most `_run_on` seconds; arrival nil if it has not."""
         api = self._api
         if not episode.leader_id:
             return None
-        end = api.simulation.getTime() + CEILING_HORIZON
+        end = api.simulation.getTime() + self._run_on(episode)
         while episode.leader_arrival is None and api.simulation.getTime() < end:
             api.simulationStep()
             if episode.leader_id in api.simulation.getArrivedIDList():
@@ -950,6 +978,19 @@ class SumoBackend(Backend):
             None if arrival is None else episode.route_length / (arrival - episode.leader_depart)
         )
         return LeaderTrip(episode.leader_id, episode.leader_depart, arrival, average)
+
+    def _run_on(self, episode: _Episode) -> float:
+        """Simulated seconds to wait for the leader-at-entry to arrive: what its remaining
+        route takes at `CEILING_MIN_SPEED`, and a minute, at most `CEILING_HORIZON` (0 when it
+        has arrived, or no longer knows a way to the end of the route)."""
+        api, leader = self._api, episode.leader_id
+        if episode.leader_arrival is not None or leader not in api.vehicle.getIDList():
+            return 0.0
+        last = api.vehicle.getRoute(leader)[-1]
+        remaining = api.vehicle.getDrivingDistance(leader, last, api.lane.getLength(f"{last}_0"))
+        if not 0.0 <= remaining < 1e9:  # SUMO's INVALID_DOUBLE_VALUE: no way there
+            return 0.0
+        return min(CEILING_HORIZON, 60.0 + remaining / CEILING_MIN_SPEED)
 
     # ----------------------------------------------------------------------- observation
 
@@ -984,15 +1025,21 @@ class SumoBackend(Backend):
         acceleration = vehicle.getAcceleration(ego_id)
         lane_id = vehicle.getLaneID(ego_id)
         lane, lane_count = self._lane(episode, ego_id, lane_id)
+        position = ego.entry_offset + vehicle.getDistance(ego_id)
         state = Ego(
             speed=speed,
             acceleration=acceleration,
             lane=lane,
             lane_count=lane_count,
-            position=ego.entry_offset + vehicle.getDistance(ego_id),
+            position=position,
             speed_limit=self._api.lane.getMaxSpeed(lane_id),
             changing_lane=0 if ego.lane_change is None else ego.lane_change.direction,
         )
+        road = road_ahead(vehicle.getBestLanes(ego_id), lane_id, vehicle.getLanePosition(ego_id))
+        if road is None:  # on a junction
+            last = ego.last
+            driven = position - last.ego.position if last is not None else 0.0
+            road = carried(last.road if last is not None else None, driven, lane, lane_count)
         frame = None if episode.curved else self._frame(ego_id)
         ego_min_gap = ego.min_gap
         sensed = self.sensor_range
@@ -1030,6 +1077,7 @@ class SumoBackend(Backend):
             events=events,
             action=action,
             traffic=self._traffic(episode) if traffic else None,
+            road=road,
         )
         ego.last = obs
         return obs

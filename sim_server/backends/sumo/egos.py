@@ -19,13 +19,13 @@ from typing import Any
 
 from protocol.messages import (
     AppliedAction,
-    EgoObservation,
     EndReason,
     Events,
     MultiObservation,
     Observation,
     Traffic,
 )
+from sim_server.backends.base import ego_part
 from sim_server.backends.rules import EndRule, LaneChangeUnderWay
 
 EGO_ID_PREFIX = "ego."
@@ -192,14 +192,6 @@ def collision_partners(collisions: Any) -> dict[str, str]:
     return partners
 
 
-def ego_observation(ego_id: str, obs: Observation) -> EgoObservation:
-    """One ego's part of a `MultiObservation`, from its own observation."""
-    return EgoObservation(
-        ego_id, obs.ego, obs.neighbours, obs.events, obs.action,
-        obs.terminated, obs.truncated, obs.reason,
-    )  # fmt: skip
-
-
 def multi_observation(
     seq: int,
     time: float,
@@ -211,7 +203,7 @@ def multi_observation(
     """The egos that drove into this step (id, observation), in their stable order, as one
     reply: `truncated` at their time limit (every ego is then truncated), terminated with
     `last_end` (the reason of the last end) when none is left, else running."""
-    egos = tuple([ego_observation(ego_id, obs) for ego_id, obs in reported])
+    egos = tuple([ego_part(ego_id, obs) for ego_id, obs in reported])
     if truncated:
         return MultiObservation(seq, time, egos, False, True, EndReason.TIME_LIMIT, traffic)
     if last_end:

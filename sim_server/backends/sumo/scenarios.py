@@ -22,7 +22,7 @@ import subprocess
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 from xml.etree import ElementTree
 
 from protocol.messages import OptionValue, ScenarioInfo
@@ -59,6 +59,15 @@ class MeasureOptions(ParsedOptions):
 
 MEASURE_OPTIONS = MeasureOptions().as_options()
 """The announced defaults of the measurement options (copy before changing)."""
+
+
+class ScenarioFiles(NamedTuple):
+    """What a reset loads: the .sumocfg, the egos' route in it ("" on the ring, where they are
+    placed) and their departLane."""
+
+    config: Path
+    ego_route: str
+    depart_lane: str = "random"
 
 
 @dataclass(frozen=True)
@@ -293,9 +302,8 @@ def build_road(
         "road.nod.xml": _nodes(scenario),
         "road.edg.xml": _edges(scenario),
         "routes.rou.xml": _routes(scenario, traffic),
-        f"{scenario.name}.sumocfg": _config(),
     }
-    return _write_scenario(scenario.name, texts, cache_dir)
+    return write_scenario(scenario.name, texts, cache_dir)
 
 
 def build_ring(
@@ -317,15 +325,17 @@ def build_ring(
         "road.nod.xml": _ring_nodes(layout),
         "road.edg.xml": _ring_edges(layout),
         "routes.rou.xml": _ring_routes(layout, frozenset(ego_slots)),
-        f"{scenario.name}.sumocfg": _config(),
     }
-    return _write_scenario(scenario.name, texts, cache_dir, ("--no-internal-links", "true"))
+    return write_scenario(scenario.name, texts, cache_dir, ("--no-internal-links", "true"))
 
 
-def _write_scenario(
+def write_scenario(
     name: str, texts: dict[str, str], cache_dir: Path, netconvert_args: tuple[str, ...] = ()
 ) -> Path:
-    """The files in a folder named by a hash of their contents (never stale), built once."""
+    """The files in a folder named by a hash of their contents (never stale), built once: the
+    `texts` (``road.nod.xml``, ``road.edg.xml``, optionally ``road.con.xml``, the routes) and
+    the .sumocfg, the network made by netconvert."""
+    texts = {**texts, f"{name}.sumocfg": sumo_config()}
     digest = hashlib.sha256(json.dumps(texts, sort_keys=True).encode()).hexdigest()[:12]
     folder = cache_dir / f"{name}-{digest}"
     config = folder / f"{name}.sumocfg"
@@ -362,6 +372,9 @@ def _edges(scenario: RoadScenario) -> str:
 
 
 def _run_netconvert(folder: Path, extra: tuple[str, ...] = ()) -> None:
+    connections = folder / "road.con.xml"
+    if connections.exists():  # every lane-to-lane link given: netconvert guesses none
+        extra = ("--connection-files", str(connections), *extra)
     result = subprocess.run(
         [
             find_netconvert(),
@@ -458,7 +471,8 @@ def _ring_routes(layout: RingOptions, ego_slots: frozenset[int]) -> str:
     )
 
 
-def _config() -> str:
+def sumo_config() -> str:
+    """The .sumocfg of a built-in scenario: its network, its routes, the forced settings."""
     return (
         "<configuration>\n"
         "    <input>\n"

@@ -3,6 +3,7 @@ under way can no longer meet them."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -47,6 +48,26 @@ def test_each_target_fails_alone() -> None:
         assert [k for k, ok in met.items() if not ok] == [name]
 
 
+def test_without_a_ceiling_anywhere_the_ceiling_target_does_not_apply() -> None:
+    no_ceiling = {**IDM, "speed_ratio_to_ceiling": math.nan}
+    assert targets_met(figures(speed_ratio_to_ceiling=math.nan), no_ceiling)["near_ceiling"]
+
+
+def test_on_a_road_with_a_lane_end_every_episode_must_arrive() -> None:
+    routed = {**IDM, "route_lanes": 1, "arrival_share": 0.9}
+    assert not targets_met(figures(arrival_share=0.95), routed)["arrives"]
+    assert targets_met(figures(arrival_share=1.0), routed)["arrives"]
+    assert targets_met(figures(arrival_share=0.0), IDM)["arrives"]  # an open road: any end
+
+
+def test_the_screen_fails_arrives_at_the_first_episode_that_does_not() -> None:
+    screen = FailureScreen(seeds=4, idm_speed=14.0, routed=True)
+    assert screen.failed([summary()], remaining(1)) is None
+    stood = dataclasses.replace(summary(), reason="lane_end")
+    assert screen.failed([summary(), stood], remaining(2)) == "arrives"
+    assert FailureScreen(seeds=4, idm_speed=14.0).failed([stood], remaining(1)) is None
+
+
 def summary(
     speed: float = 14.0,
     steps: int = 1000,
@@ -57,7 +78,7 @@ def summary(
 ) -> EpisodeSummary:
     """An episode with these figures (the rest plausible)."""
     return EpisodeSummary(
-        episode=0, seed=0, steps=steps, reason="arrived", duration=steps / 10,
+        episode=0, seed=0, steps=steps, reason="end_of_road", duration=steps / 10,
         distance=speed * steps / 10, average_speed=speed, collisions=collisions,
         jerk_share_above_limit=jerk, max_abs_jerk=0.0, headway_share_below_1s=headway,
         min_time_headway=None, min_ttc=None, ceiling_speed=ceiling,

@@ -1,10 +1,12 @@
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from agent_client.rl.features import GAP_CAP, FeatureMap
-from protocol.messages import Ego, Neighbour, Neighbours
+from protocol.messages import OPEN_ROAD, ROAD_RANGE, Ego, Neighbour, Neighbours, Road
 from tests.protocol.test_codec import make_observation
 
 
@@ -44,3 +46,21 @@ def test_the_lane_decision_phase_is_the_last_feature() -> None:
     assert features.dim == FeatureMap("lc").dim + 1
     phases = [features(make_observation(seq=seq))[-1] for seq in (0, 3, 9, 10, 13)]
     assert phases == pytest.approx([0.0, 0.3, 0.9, 0.0, 0.3])
+
+
+def test_the_road_features_read_the_route() -> None:
+    lc, road = FeatureMap("lc"), FeatureMap("road")
+    assert road.dim == lc.dim + 5
+    merging = Road(lane_end=100.0, lanes_to_change=1, left_lane_end=ROAD_RANGE, right_lane_end=0.0)
+    obs = make_observation(ego=Ego(20.0, 0.0, 0, 3, 100.0, 27.78), road=merging)
+    x = road(obs)
+    assert x[: lc.dim] == pytest.approx(lc(obs))
+    assert x[lc.dim :] == pytest.approx([0.1, 0.5, 1.0, 0.0, 0.5])  # 100 m, +1, 5 s of 10
+
+
+def test_the_road_features_are_those_of_the_open_road_without_one() -> None:
+    """A server older than 1.6, or cf and cflc: the lanes beside it repeat lc's flags."""
+    road = FeatureMap("road")
+    middle = make_observation(ego=Ego(15.0, 0.0, 1, 3, 100.0, 22.22))
+    assert road(middle)[-5:] == pytest.approx([1.0, 0.0, 1.0, 1.0, 1.0])
+    assert road(replace(middle, road=OPEN_ROAD))[-5:] == pytest.approx([1.0, 0.0, 1.0, 1.0, 1.0])

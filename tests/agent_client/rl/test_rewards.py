@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -19,8 +20,19 @@ from agent_client.rl.rewards import (
     make_reward,
     max_reward,
     q_upper_bound,
+    route_potential,
 )
-from protocol.messages import AppliedAction, Ego, Events, Neighbour, Neighbours, Observation
+from protocol.messages import (
+    OPEN_ROAD,
+    ROAD_RANGE,
+    AppliedAction,
+    Ego,
+    Events,
+    Neighbour,
+    Neighbours,
+    Observation,
+    Road,
+)
 
 DT = 0.1
 LIMIT = 80 / 3.6
@@ -240,7 +252,7 @@ def test_safe_collision_penalty_beats_worst_collision_free_future() -> None:
     safe = SafeReward()
     assert safe(None, make_obs(events=Events(collision=True)), DT) == -20.0
     assert safe.worst_step() == pytest.approx(-0.1)
-    assert safe.min_collision_penalty(0.99) == pytest.approx(10.0)
+    assert safe.min_collision_penalty(0.99) == pytest.approx(11.0)  # missing the route: 5 + 3 x 2
     assert safe.collision_penalty > safe.min_collision_penalty(0.99)
 
 
@@ -360,7 +372,7 @@ def test_safe_stop_penalty_makes_an_unreasonable_stop_a_failure() -> None:
     crash_and_stop = dataclasses.replace(stopped, events=Events(collision=True), reason="collision")
     assert strict(None, crash_and_stop, DT) == -20.0  # a crash is a crash
     assert strict.min_collision_penalty(0.99) == 20.0  # the stop sets the bound now
-    with pytest.raises(ValueError, match="penalties must be non-negative"):
+    with pytest.raises(ValueError, match="penalties and route weight must be non-negative"):
         SafeReward(stop_penalty=-1.0)
     with pytest.raises(ValueError, match="must not exceed collision_penalty"):
         SafeReward(stop_penalty=30.0)
@@ -481,3 +493,48 @@ def test_all_rewards_finite_and_bounded(
     assert values["ra4"] == pytest.approx(100.0 * values["ra3"])
     assert values["ra3"] >= -1.0 - 310.0 / 100.0
     assert values["ra3"] <= 70.0 * 3.6 / 80.0 + 0.1
+
+
+# --------------------------------------------------------------------------- the route
+
+
+def on_road(road: Road, speed: float = 20.0, reason: str = "") -> Observation:
+    return replace(make_obs(speed=speed), road=road, reason=reason, terminated=bool(reason))
+
+
+def test_a_lane_change_towards_the_route_earns_what_staying_would_cost() -> None:
+    safe = SafeReward()
+    before = on_road(Road(200.0, 1, ROAD_RANGE, 0.0))
+    changed = on_road(Road(ROAD_RANGE, 0, 0.0, 190.0))
+    stayed = on_road(Road(198.0, 1, ROAD_RANGE, 0.0))
+    # the same drive term: the difference is the potential's, w (0 - (-(1 - 198 / 1000)))
+    assert safe(before, changed, DT) - safe(before, stayed, DT) == pytest.approx(2.0 * 0.802)
+    assert route_potential(before) == pytest.approx(-0.8)
+    assert route_potential(changed) == 0.0
+    assert safe(before, stayed, DT) < safe(before, before, DT) + 1e-9  # drawing near costs
+
+
+def test_the_route_shaping_sums_to_the_potentials_difference() -> None:
+    safe = SafeReward(jerk_weight=0.0)
+    far, near, end = (on_road(Road(d, 1, ROAD_RANGE, 0.0)) for d in (900.0, 300.0, 2.0))
+    free = safe(far, far, DT)  # the drive term of these identical steps
+    shaped = (safe(far, near, DT) - free) + (safe(near, end, DT) - free)
+    assert shaped == pytest.approx(2.0 * (route_potential(end) - route_potential(far)))
+
+
+def test_ending_at_the_lane_end_costs_its_penalty_never_more_than_a_crash() -> None:
+    safe = SafeReward()
+    standing = on_road(Road(3.0, 1, ROAD_RANGE, 0.0), speed=0.0)
+    last = on_road(Road(3.0, 1, ROAD_RANGE, 0.0), speed=0.0, reason="lane_end")
+    assert safe(standing, last, DT) == pytest.approx(-5.0)
+    assert safe.lane_end_cost <= safe.collision_penalty
+    with pytest.raises(ValueError, match="must not exceed collision_penalty"):
+        SafeReward(lane_end_penalty=15.0, route_weight=3.0)
+
+
+def test_on_an_open_road_the_route_terms_are_zero() -> None:
+    safe = SafeReward()
+    prev, obs = make_obs(speed=20.0), make_obs(speed=20.0)
+    assert safe(prev, obs, DT) == safe(
+        replace(prev, road=OPEN_ROAD), replace(obs, road=OPEN_ROAD), DT
+    )

@@ -153,7 +153,7 @@ def test_a_driver_a_worker_cannot_rebuild_is_refused_before_anything_runs(
         def act(self, obs: Observation) -> tuple[float, int]:
             return 0.0, 0
 
-    with pytest.raises(ValueError, match="IDM or a policy"):
+    with pytest.raises(ValueError, match=r"IDM \(\+ MOBIL\) or a policy"):
         pool.run(EvaluationJob("idle", Idle(), SEEDS))
     assert len(pool.run(EvaluationJob("idm", IDMDriver(), SEEDS[:1]))) == 1
 

@@ -96,7 +96,10 @@ def test_a_valid_episode_passes() -> None:
         ({"protocol": (2, 0)}, "welcome.protocol"),
         ({"scenarios": ()}, "welcome.scenarios"),
         ({"observation_fields": ()}, "welcome.observation_fields"),
-        ({"observation_fields": OBSERVATION_FIELDS * 2}, "welcome.observation_fields[32].name"),
+        (
+            {"observation_fields": OBSERVATION_FIELDS * 2},
+            f"welcome.observation_fields[{len(OBSERVATION_FIELDS)}].name",
+        ),
         ({"action": ActionSchema(1.0, 3.0)}, "welcome.action"),
         ({"action": ActionSchema(-6.0, 3.0, {"left": 1})}, "welcome.action.lane_change"),
         ({"sensor_range": 0.0}, "welcome.sensor_range"),

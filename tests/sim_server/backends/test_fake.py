@@ -4,12 +4,20 @@ with many egos (protocol 1.4) each ego is judged alone and the time limit ends t
 from __future__ import annotations
 
 import random
+import time
 from collections.abc import Callable
 
 import pytest
 
 from protocol.errors import ErrorCode
-from protocol.messages import MultiObservation, Observation, OptionValue
+from protocol.messages import (
+    ROAD_RANGE,
+    EndReason,
+    MultiObservation,
+    Observation,
+    OptionValue,
+    Road,
+)
 from sim_server.backends.base import SINGLE_EGO_ID
 from sim_server.backends.fake import FAKE_OPTIONS, MAX_FAKE_EGOS, SPEED_LIMIT, FakeBackend
 from sim_server.errors import BackendError
@@ -241,3 +249,29 @@ def test_after_the_last_ego_a_multi_step_is_out_of_order(backend: FakeBackend) -
     with pytest.raises(BackendError) as refused:
         backend.step_many(99, {"ego.0": (0.0, 0)})
     assert refused.value.code is ErrorCode.OUT_OF_ORDER
+
+
+def test_the_open_road_is_reported_on_every_observation(backend: FakeBackend) -> None:
+    first = reset(backend)
+    assert first.road == Road(ROAD_RANGE, 0, 0.0, 0.0)
+    assert all(obs.road == first.road for obs in run(backend, 0.0))
+
+
+def test_a_lane_that_ends_stops_the_ego_there_and_ends_the_episode(backend: FakeBackend) -> None:
+    first = reset(backend, lane_end=60.0, lane_end_patience=1.5, max_episode_time=100.0)
+    assert first.road is not None and first.road.lane_end == pytest.approx(
+        60.0 - first.ego.position
+    )
+    stream = run(backend, -0.2)  # slower than the leader: the lane's end comes first
+    last = stream[-1]
+    assert last.reason == EndReason.LANE_END and last.terminated
+    assert last.ego.position == 60.0 and last.ego.speed == 0.0 and last.road is not None
+    assert last.road.lane_end == 0.0
+    standing = [o for o in stream if o.ego.speed == 0.0]
+    assert standing[-1].time - standing[0].time == pytest.approx(1.5)
+
+
+def test_a_reset_takes_the_seconds_asked_for(backend: FakeBackend) -> None:
+    started = time.monotonic()
+    reset(backend, reset_seconds=0.3)
+    assert time.monotonic() - started >= 0.3

@@ -26,7 +26,8 @@ def refusal(call: object) -> str:
 def test_the_announced_defaults_are_the_dataclass_defaults_in_order() -> None:
     assert list(COMMON_OPTIONS) == [
         "decision_interval", "max_episode_time", "warmup", "insertion_timeout", "stop_speed",
-        "stop_gap", "stop_patience", "report_ceiling", "ego_driver", "egos",
+        "stop_gap", "stop_patience", "lane_end_patience", "report_ceiling", "ego_driver",
+        "egos",
     ]  # fmt: skip
     assert COMMON_OPTIONS["warmup"] == 30.0 and COMMON_OPTIONS["report_ceiling"] is True
     assert TRAFFIC_OPTIONS == {

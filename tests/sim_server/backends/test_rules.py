@@ -8,6 +8,7 @@ from dataclasses import replace
 import pytest
 
 from protocol.messages import (
+    ROAD_RANGE,
     AccelerationLimit,
     AppliedAction,
     Ego,
@@ -17,6 +18,7 @@ from protocol.messages import (
     Neighbour,
     Neighbours,
     Observation,
+    Road,
 )
 from sim_server.backends.options import EpisodeOptions
 from sim_server.backends.rules import (
@@ -250,3 +252,44 @@ def test_a_collision_comes_before_every_other_reason() -> None:
     assert rule.check(replace(obs, events=Events(end_of_road=True))) is EndReason.END_OF_ROAD
     last = ended(obs, EndReason.COLLISION)
     assert last.terminated and not last.truncated and last.reason == "collision"
+
+
+# --------------------------------------------------------------------------- the lane's end
+
+MERGING = Road(lane_end=8.0, lanes_to_change=1, left_lane_end=ROAD_RANGE, right_lane_end=0.0)
+
+
+def at_lane_end(rule: EndRule, speeds: list[float], road: Road = MERGING) -> list[object]:
+    """The rule's verdicts on 0.1 s steps at these speeds, on a lane ending `road.lane_end` m
+    ahead."""
+    times = tenths(ENTRY + 0.9, len(speeds))
+    return [
+        rule.check(replace(observation(t, v), road=road))
+        for t, v in zip(times, speeds, strict=True)
+    ]
+
+
+def test_standing_at_the_end_of_a_lane_that_must_be_left_ends_as_lane_end() -> None:
+    rule = EndRule(replace(OPTIONS, lane_end_patience=3.0), ENTRY)
+    found = at_lane_end(rule, [0.0] * 31)
+    assert found[:30] == [None] * 30  # waiting for a gap is no unreasonable stop (2 s)
+    assert found[30] is EndReason.LANE_END  # 3.0 s after it first stood there
+    assert EndReason.LANE_END.terminates
+
+
+def test_moving_on_restarts_the_lane_ends_patience() -> None:
+    rule = EndRule(replace(OPTIONS, lane_end_patience=1.0), ENTRY)
+    found = at_lane_end(rule, [0.0] * 8 + [2.0] + [0.0] * 11)
+    assert found == [None] * 19 + [EndReason.LANE_END]
+
+
+def test_a_stop_far_from_the_lane_end_is_an_ordinary_stop() -> None:
+    far = replace(MERGING, lane_end=200.0)
+    found = at_lane_end(EndRule(replace(OPTIONS, lane_end_patience=9.0), ENTRY), [0.0] * 21, far)
+    assert found[20] is EndReason.STOPPED
+
+
+def test_the_open_road_never_ends_at_a_lane_end() -> None:
+    found = at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 21, Road(ROAD_RANGE, 0, 0.0, 0.0))
+    assert EndReason.LANE_END not in found
+    assert found[20] is EndReason.STOPPED

@@ -1,0 +1,75 @@
+"""The road ahead of an ego, from what SUMO's own lane-change model plans with.
+
+`vehicle.getBestLanes` gives, for every lane of the ego's edge, how far a vehicle can drive from
+the start of that lane and stay on its route (``length``), and the signed number of lanes to
+cross to the best lane (``offset``, positive to the left). SUMO counts a lane as going on where
+its continuation can still reach the route by changing lanes further down the road, so the
+distances are those within which a change must have happened: the end of an acceleration lane,
+a lane drop, a lane that does not lead to the exit. The lanes that go on farthest lead to the end
+of the route (or beyond SUMO's look-ahead of at least 3 km): they are reported at `ROAD_RANGE`.
+
+On a junction (an internal lane) SUMO reports only the lane the ego leads into: the road there is
+the one of the lane it came from, carried on by the distance driven (`carried`).
+
+Source: SUMO docs, TraCI "Vehicle Value Retrieval" (best lanes, 0xb2); src/microsim/MSVehicle.cpp
+(`updateBestLanes`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from protocol.messages import ROAD_RANGE, Road
+
+LONGEST_TOLERANCE = 1.0
+"""Metres within which a lane counts as going on as far as the longest of its edge (the lanes of
+one edge share its length; their junction lanes may differ a little)."""
+
+_LENGTH, _OFFSET = 1, 3
+"""Positions in a best-lanes entry: (lane id, length, occupation, offset, allows continuation,
+next lanes)."""
+
+
+def road_ahead(best_lanes: Any, lane_id: str, lane_position: float) -> Road | None:
+    """The `Road` of an ego at `lane_position` on `lane_id`, from its `best_lanes`; None on a
+    junction's internal lane, for which SUMO reports only the lane it leads into (`carried`)."""
+    entries = {entry[0]: entry for entry in best_lanes}
+    mine = entries.get(lane_id)
+    if mine is None:
+        return None
+    longest = max(entry[_LENGTH] for entry in best_lanes) - LONGEST_TOLERANCE
+
+    def end(entry: Any) -> float:
+        length = entry[_LENGTH]
+        if length >= longest:
+            return ROAD_RANGE
+        return min(ROAD_RANGE, max(0.0, length - lane_position))
+
+    edge, _, index = lane_id.rpartition("_")
+    lane = int(index)
+    left = entries.get(f"{edge}_{lane + 1}")
+    right = entries.get(f"{edge}_{lane - 1}") if lane > 0 else None
+    return Road(
+        end(mine),
+        int(mine[_OFFSET]),
+        end(left) if left is not None else 0.0,
+        end(right) if right is not None else 0.0,
+    )
+
+
+def carried(previous: Road | None, driven: float, lane: int, lane_count: int) -> Road:
+    """The road on a junction: the one of the lane the ego came from, `driven` metres on, as
+    far as the junction's lanes allow (`lane` of `lane_count`)."""
+    if previous is None:
+        return Road(ROAD_RANGE, 0, 0.0, 0.0)
+
+    def on(distance: float) -> float:
+        return distance if distance >= ROAD_RANGE else max(0.0, distance - driven)
+
+    change = min(max(previous.lanes_to_change, -lane), lane_count - 1 - lane)
+    return Road(
+        on(previous.lane_end),
+        change,
+        on(previous.left_lane_end) if lane < lane_count - 1 else 0.0,
+        on(previous.right_lane_end) if lane > 0 else 0.0,
+    )

@@ -1,0 +1,101 @@
+"""IDM + MOBIL: the lane changes a route needs, MOBIL's discretionary ones, and its safety."""
+
+from __future__ import annotations
+
+import pytest
+
+from agent_client.drivers.mobil import IDMMobilDriver
+from agent_client.drivers.spec import load_driver
+from protocol.messages import ROAD_RANGE, Ego, Neighbour, Neighbours, Observation, Road
+from tests.protocol.test_codec import make_observation
+
+ABSENT = Neighbour(False, 200.0, 0.0, 0.0)
+SPEED = 25.0
+
+
+def scene(
+    lane: int = 0,
+    lanes: int = 3,
+    road: Road | None = None,
+    seq: int = 10,
+    time: float = 60.0,
+    speed: float = SPEED,
+    **near: Neighbour,
+) -> Observation:
+    """The ego at `speed` in `lane` of `lanes` (100 km/h road) among the neighbours named."""
+    slots = ("left_leader", "left_follower", "leader", "follower", "right_leader", "right_follower")
+    return make_observation(
+        seq=seq,
+        time=time,
+        ego=Ego(speed, 0.0, lane, lanes, 300.0, 27.78),
+        neighbours=Neighbours(*(near.get(slot, ABSENT) for slot in slots)),
+        road=road,
+        ceiling=None,
+    )
+
+
+def merging(lane_end: float) -> Road:
+    return Road(lane_end, 1, ROAD_RANGE, 0.0)
+
+
+def test_it_merges_as_soon_as_the_gap_is_safe() -> None:
+    _, lane = IDMMobilDriver().act(scene(road=merging(180.0)))
+    assert lane == 1
+
+
+def test_a_strategic_change_waits_for_a_safe_gap_and_adapts_its_speed() -> None:
+    driver = IDMMobilDriver()
+    alongside = Neighbour(True, 3.0, 3.2, SPEED, "beside")
+    behind_it, lane = driver.act(scene(road=merging(400.0), left_leader=alongside))
+    assert lane == 0  # not yet urgent: no request into an unsafe gap
+    alone, _ = IDMMobilDriver().act(scene(road=merging(400.0)))
+    assert behind_it < 0.0 < alone  # it falls back behind the vehicle beside it
+
+
+def test_near_the_lane_end_it_asks_at_every_decision_and_brakes_for_the_end() -> None:
+    driver = IDMMobilDriver()
+    close_behind = Neighbour(True, 2.0, 3.2, 20.0, "lag")
+    acceleration, lane = driver.act(
+        scene(road=merging(25.0), speed=15.0, left_follower=close_behind)
+    )
+    assert lane == 1  # the simulator's own gap check refuses it if the gap is unsafe
+    assert acceleration <= -3.0
+
+
+def test_no_change_leads_away_from_the_route() -> None:
+    slow_leader = Neighbour(True, 15.0, 0.0, 10.0, "slow")
+    to_exit = Road(900.0, -1, ROAD_RANGE, 900.0)  # beyond the look-ahead: not strategic yet
+    driver = IDMMobilDriver()
+    accelerations = [driver.act(scene(lane=1, road=to_exit, leader=slow_leader))]
+    assert accelerations[0][1] != 1
+    assert IDMMobilDriver().act(scene(lane=0, leader=slow_leader))[1] == 1  # open road: passes
+
+
+def test_it_does_not_change_into_a_lane_that_ends_soon() -> None:
+    slow_leader = Neighbour(True, 15.0, 0.0, 10.0, "slow")
+    ending_left = Road(ROAD_RANGE, 0, 120.0, 0.0)
+    _, lane = IDMMobilDriver().act(scene(lane=0, road=ending_left, leader=slow_leader))
+    assert lane == 0
+
+
+def test_mobil_passes_a_slow_leader_once_a_second_if_safe() -> None:
+    driver = IDMMobilDriver()
+    slow = Neighbour(True, 15.0, 0.0, 10.0, "slow")
+    assert driver.act(scene(lane=0, leader=slow, time=60.0))[1] == 1
+    assert driver.act(scene(lane=0, leader=slow, time=60.5))[1] == 0  # within the second
+    assert driver.act(scene(lane=0, leader=slow, time=61.0))[1] == 1
+    fast_behind = Neighbour(True, 5.0, 3.2, 30.0, "fast")
+    assert IDMMobilDriver().act(scene(lane=0, leader=slow, left_follower=fast_behind))[1] == 0
+
+
+def test_keeping_right_needs_no_gain_but_leaving_it_does() -> None:
+    driver = IDMMobilDriver()
+    assert driver.act(scene(lane=1))[1] == 0  # an empty road: nothing to gain either way
+
+
+@pytest.mark.parametrize("spec", ["idm+mobil", "sumo"])
+def test_the_specs_name_the_models(spec: str) -> None:
+    driver = load_driver(spec)
+    assert getattr(driver, "name", "") == spec
+    if spec == "sumo":
+        assert driver.reset_options == {"ego_driver": "sumo"}  # type: ignore[attr-defined]

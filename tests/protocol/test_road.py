@@ -1,0 +1,80 @@
+"""The road ahead (protocol 1.6): on the wire, in the flat vector, and for older peers."""
+
+from __future__ import annotations
+
+import msgpack
+
+from protocol.codec import decode_reply, encode
+from protocol.messages import (
+    OPEN_ROAD,
+    ROAD_RANGE,
+    Ego,
+    EgoObservation,
+    EndReason,
+    MultiObservation,
+    Road,
+    road_ahead,
+)
+from protocol.schema import OBSERVATION_FIELDS, Flattener, fields_for
+from tests.protocol.test_codec import _parts, make_observation
+
+MERGING = Road(lane_end=143.5, lanes_to_change=1, left_lane_end=ROAD_RANGE, right_lane_end=0.0)
+
+
+def test_an_observation_with_its_road_round_trips() -> None:
+    obs = make_observation(ego=Ego(15.0, 0.0, 0, 3, 320.0, 27.78), road=MERGING)
+    assert decode_reply(encode(obs)) == obs
+
+
+def test_each_ego_of_a_frame_carries_its_own_road() -> None:
+    first = make_observation(road=MERGING)
+    second = make_observation(road=OPEN_ROAD, terminated=True, reason=EndReason.LANE_END)
+    frame = MultiObservation(
+        7,
+        40.0,
+        (
+            EgoObservation("ego.0", *_parts(first), road=first.road),
+            EgoObservation("ego.1", *_parts(second), True, False, "lane_end", second.road),
+        ),
+    )
+    decoded = decode_reply(encode(frame))
+    assert isinstance(decoded, MultiObservation)
+    assert [e.road for e in decoded.egos] == [MERGING, OPEN_ROAD]
+
+
+def test_an_observation_without_road_is_the_frame_a_1_5_server_sends() -> None:
+    obs = make_observation()
+    frame = encode(obs)
+    assert "road" not in msgpack.unpackb(frame)  # left out when nil, as traffic and safety are
+    assert decode_reply(frame) == obs  # and read back with road nil
+
+
+def test_a_1_5_client_reads_a_1_6_observation_ignoring_its_road() -> None:
+    frame = msgpack.unpackb(encode(make_observation(road=MERGING)))
+    assert frame["road"]["lanes_to_change"] == 1
+    del frame["road"]  # what a reader that does not know the key is left with
+    assert decode_reply(msgpack.packb(frame)) == make_observation()
+
+
+def test_the_flat_vector_ends_with_the_road() -> None:
+    flatten = Flattener(OBSERVATION_FIELDS)
+    vector = flatten(make_observation(ego=Ego(15.0, 0.0, 0, 3, 320.0, 27.78), road=MERGING))
+    names = [f.name for f in OBSERVATION_FIELDS[-4:]]
+    assert names == ["lane_end", "lanes_to_change", "left_lane_end", "right_lane_end"]
+    assert vector[-4:] == [143.5, 1.0, ROAD_RANGE, 0.0]
+
+
+def test_an_observation_without_road_reads_as_the_open_road() -> None:
+    middle = make_observation(ego=Ego(15.0, 0.0, 1, 3, 320.0, 27.78))
+    assert road_ahead(middle) == OPEN_ROAD
+    leftmost = make_observation(ego=Ego(15.0, 0.0, 2, 3, 320.0, 27.78))
+    assert road_ahead(leftmost) == Road(ROAD_RANGE, 0, 0.0, ROAD_RANGE)
+    one_lane = make_observation()
+    assert road_ahead(one_lane) == Road(ROAD_RANGE, 0, 0.0, 0.0)
+
+
+def test_a_client_older_than_1_6_is_announced_the_32_fields_it_knows() -> None:
+    assert fields_for((1, 5)) == OBSERVATION_FIELDS[:32]
+    assert fields_for((1, 0)) == OBSERVATION_FIELDS[:32]
+    assert fields_for((1, 6)) == OBSERVATION_FIELDS
+    assert fields_for((1, 9)) == OBSERVATION_FIELDS
