@@ -2,12 +2,12 @@
 Prints a table, writes JSON.
 
 For each reward and training seed: start a real SUMO server on a free loopback port, train from
-scratch with the recommended configuration (plus any --set), evaluate greedily every
-`eval_every` episodes on `eval_episodes` held-out seeds (in the background, on two
-idle-priority `direct://` servers of their own, unless --eval-servers 0; --set
-eval_while_training=false makes training wait for them), and stop at three passing evaluations
-in a row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of leader steps under
-1 s headway, speed >= IDM and >= 98 % of the leader-at-entry ceiling) or at the time budget.
+scratch with the scenario's recommended configuration (`agent-client train`'s; plus any --config and
+--set), evaluate greedily every `eval_every` episodes on `eval_episodes` held-out seeds (in the
+background, on two idle-priority `direct://` servers of their own, unless --eval-servers 0; --set
+eval_while_training=false makes training wait for them), and stop at three passing evaluations in a
+row (zero collisions, <= 2.6 % jerk samples above 5.6 m/s^3, <= 5 % of leader steps under 1 s
+headway, speed >= IDM and >= 98 % of the leader-at-entry ceiling) or at the time budget.
 
     python benchmarks/learning.py --rewards safe ra3 --seeds 0 1 2 --minutes 15
     python benchmarks/learning.py --rewards safe --seeds 0 1 2 --minutes 3 --config configs/cf.toml
@@ -43,6 +43,7 @@ from agent_client.training.config import (
     apply_overrides,
     load_config_file,
     parse_assignment,
+    recommended,
 )
 from agent_client.training.progress import Profile
 from agent_client.training.trainer import QuietReporter, Trainer
@@ -249,10 +250,10 @@ def main() -> int:
         return 2
 
     def run_config(reward: str, seed: int) -> TrainConfig:
+        scenario = args.scenario[0] if len(args.scenario) == 1 else args.scenario
         config = apply_overrides(
-            TrainConfig(),
+            recommended(scenario),  # what `agent-client train --scenario ...` starts from
             {
-                "scenario": args.scenario[0] if len(args.scenario) == 1 else args.scenario,
                 "reward": reward,
                 "seed": seed,
                 "episodes": args.episodes,

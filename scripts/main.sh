@@ -3,11 +3,10 @@
 # the bridge, in one report. It starts four SUMO servers on free loopback ports, two to train
 # on and two to evaluate on (and waits for their readiness lines), then:
 #   1. calibrates IDM on the human drivers of cf,
-#   2. trains the recommended learner (TD3) with the settings tuned for cf (configs/cf.toml)
-#      until three greedy evaluations in a row meet every target (or the time cap), and
-#      evaluates it against the calibrated IDM,
-#   3. trains the integrated car-following and lane-changing model on cflc (configs/cflc.toml:
-#      random warm-up actions),
+#   2. trains the recommended learner (TD3) on cf with the defaults, which are the settings
+#      measured best for it (configs/cf.toml spells them out), until three greedy evaluations
+#      in a row meet every target (or the time cap), and evaluates it against the calibrated IDM,
+#   3. trains the integrated car-following and lane-changing model on cflc (its defaults),
 #   4. evaluates it against the cf policy (the paper's Fig. 13) and IDM,
 #   5. writes one report of both.
 # Takes about 4 minutes on 2 cores (3.6 measured; at most 12); shows progress throughout.
@@ -53,16 +52,16 @@ training=(--server "${servers[0]}" --server "${servers[1]}"
 echo "== 1/5 calibrating IDM on the human drivers of cf"
 agent-client calibrate-idm --server "${servers[0]}" --scenario cf --out "$out/idm.json"
 
-echo "== 2/5 training the recommended learner (TD3) on cf, tuned for it (configs/cf.toml)"
-agent-client train "${training[@]}" --config configs/cf.toml --scenario cf --out "$out/train-cf" --episodes 1000 \
+echo "== 2/5 training the recommended learner (TD3) on cf (its recommended settings: the defaults)"
+agent-client train "${training[@]}" --scenario cf --out "$out/train-cf" --episodes 1000 \
     --minutes "${CF_MINUTES:-3}" --stop-when-converged
 echo "== evaluating the cf policy against the calibrated IDM"
 agent-client evaluate --server "${eval_servers[0]}" --scenario cf --policy "$out/train-cf/policy.pt" \
     --baseline "idm:$out/idm.json" --episodes "$episodes" --out "$out/eval/cf" \
     --run "$out/train-cf"
 
-echo "== 3/5 training the integrated car-following and lane-changing model on cflc (configs/cflc.toml)"
-agent-client train "${training[@]}" --config configs/cflc.toml --scenario cflc \
+echo "== 3/5 training the integrated car-following and lane-changing model on cflc"
+agent-client train "${training[@]}" --scenario cflc \
     --out "$out/train-cflc" --episodes 1000 \
     --minutes "${CFLC_MINUTES:-5}" --stop-when-converged
 echo "== 4/5 evaluating it against the cf policy and IDM"

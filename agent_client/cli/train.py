@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agent_client.cli.common import Commands, add_connection_arguments, existing_folder
+from agent_client.defaults import DEFAULT_SCENARIO
 from agent_client.rl.rewards import REWARDS
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 
@@ -20,8 +21,9 @@ def add_parser(commands: Commands) -> None:
     train = commands.add_parser(
         "train",
         help="train a TD3 (or DDPG) driver through the bridge",
-        description="Train a driver through the bridge. Settings: defaults < --config FILE < "
-        "flags < --set KEY=VALUE. Every setting and its default: docs/learner.md.",
+        description="Train a driver through the bridge. Settings: the scenario's recommended "
+        "ones < --config FILE < flags < --set KEY=VALUE. Every setting and its default: "
+        "docs/learner.md.",
     )
     add_connection_arguments(train, several=True)
     train.add_argument("--out", type=Path, help="run folder (default runs/SCENARIO-REWARD-SEED)")
@@ -99,16 +101,30 @@ def add_parser(commands: Commands) -> None:
 
 
 def build_config(args: argparse.Namespace) -> TrainConfig:
+    """The run's settings: the scenario's recommended ones < --config < flags < --set."""
     from agent_client.training.config import (
-        TrainConfig,
         apply_overrides,
         load_config_file,
         parse_assignment,
+        recommended,
     )
 
-    config = TrainConfig()
-    if args.config is not None:
-        config = apply_overrides(config, load_config_file(args.config))
+    file = load_config_file(args.config) if args.config is not None else {}
+    assignments = [parse_assignment(text) for text in args.set]
+
+    def chosen(name: str, flag: Any, default: Any) -> Any:
+        """What the run's `name` will be: the last --set of it, else the flag, else the file's."""
+        named = [a[name] for a in assignments if name in a]
+        return named[-1] if named else flag if flag is not None else file.get(name, default)
+
+    scenarios = args.scenario
+    flag = None if scenarios is None else scenarios[0] if len(scenarios) == 1 else scenarios
+    # the scenario's recommended settings first, then the user's
+    config = recommended(
+        chosen("scenario", flag, DEFAULT_SCENARIO), chosen("reward", args.reward, "safe")
+    )
+    if file:
+        config = apply_overrides(config, file)
     flags: dict[str, Any] = {
         "reward": args.reward,
         "episodes": args.episodes,
@@ -132,8 +148,7 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         preset = TD3Config.td3() if args.algo == "td3" else TD3Config.ddpg()
         algo = {k: getattr(preset, k) for k in ("n_critics", "policy_delay", "target_noise")}
         config = apply_overrides(config, {"learner": {**config.learner.to_dict(), **algo}})
-    for assignment in args.set:
-        update = parse_assignment(assignment)
+    for update in assignments:
         config = apply_overrides(config, update)
     return config
 
@@ -170,6 +185,7 @@ class BarReporter:
 
 def run(args: argparse.Namespace) -> int:
     from agent_client.training.config import TrainConfig, apply_overrides
+    from agent_client.training.plan import plan_lines
     from agent_client.training.plots import plot_training
     from agent_client.training.trainer import Trainer
 
@@ -194,14 +210,9 @@ def run(args: argparse.Namespace) -> int:
         args.eval_server,
         reset_timeout_s=args.reset_timeout,
     )
-    egos = f", {config.egos} egos per simulation" if config.egos > 1 else ""
     try:
-        reporter.message(
-            f"training {config.learner.algo} on {', '.join(config.scenarios)} with reward "
-            f"{config.reward} "
-            f"({trainer.features.name} features, {trainer.agent.n_lane_actions} lane choices"
-            f"{egos}) -> {out}"
-        )
+        for line in plan_lines(trainer, out):
+            reporter.message(line)
         progress = trainer.run(resume=args.resume is not None)
     finally:
         reporter.close()

@@ -1,7 +1,7 @@
 """What the networks see: scaled features computed from the named observation.
 
 The wire carries raw SI values (and the flat vector of the protocol's schema); choosing and
-scaling inputs is a learning decision, so it lives here. Two sets:
+scaling inputs is a learning decision, so it lives here. Three sets:
 
 * ``cf`` — the paper's car-following state (§4.3): speed, acceleration, gap and speed difference
   to the leader, plus the time headway and leader presence (a missing leader is a flag, not a
@@ -9,15 +9,16 @@ scaling inputs is a learning decision, so it lives here. Two sets:
 * ``lc`` — ``cf`` plus the other five neighbours of Fig. 11 (presence, gap, relative speed) and
   whether there is a lane to the left and to the right.
 * ``road`` — ``lc`` plus the road ahead along the route (`protocol.messages.Road`, protocol 1.6):
-  how far the ego's lane and the lanes beside it go on, the lanes it must cross (and to which
-  side), and the seconds left to the end of its lane at its speed. On a road whose lanes all go
-  on (``cf``, ``cflc``, the ring) they are constant but for the lanes beside the ego, which
-  repeat ``lc``'s last two features; from a server older than 1.6 they are those of the open
-  road.
+  how far the ego's lane and the lanes beside it go on, the lanes it must cross (and to which side),
+  the seconds left to the end of its lane at its speed, and how far the gap beside it on that side
+  is from a safe one (ahead and behind). On a road whose lanes all go on (``cf``, ``cflc``, the
+  ring) they are constant but for the lanes beside the ego, which repeat ``lc``'s last two features;
+  from a server older than 1.6 they are those of the open road.
 
 All features are O(1): speeds by the speed limit, gaps by 100 m (capped at 2), speed differences
 by 10 m/s, headways by 5 s (capped at 1), the road's distances by `ROAD_RANGE`, the lanes to
-change by 2 (capped at ±1.5), the time to the lane end by 10 s (capped at 1).
+change by 2 (capped at ±1.5), the time to the lane end by 10 s (capped at 1), the gap margins by
+100 m (within ±1).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 
 from agent_client.constants import PAPER_SPEED_LIMIT
 from agent_client.errors import FeatureMismatch, UsageError
-from agent_client.rl.lanes import lane_phase
+from agent_client.rl.lanes import lane_phase, secure_gap
 from protocol.messages import ROAD_RANGE, Neighbour, Observation, road_ahead
 
 __all__ = [
@@ -99,8 +100,26 @@ def road_reading(obs: Observation) -> list[float]:
         road.left_lane_end / ROAD_RANGE,
         road.right_lane_end / ROAD_RANGE,
         min(seconds, 1.0),
+        *_gap_margins(obs, road.lanes_to_change),
     ]
     return features
+
+
+def _gap_margins(obs: Observation, lanes_to_change: int) -> list[float]:
+    """How much longer (+) or shorter (-) than a safe driver's secure gap the gaps to the new
+    leader and from the new follower are, on the side the route leads to (0 and 0 on a road
+    whose lanes lead on): what the ego's speed must open before it can change."""
+    if not lanes_to_change:
+        return [0.0, 0.0]
+    near, speed = obs.neighbours, obs.ego.speed
+    lead, lag = (
+        (near.left_leader, near.left_follower)
+        if lanes_to_change > 0
+        else (near.right_leader, near.right_follower)
+    )
+    ahead = lead.gap - secure_gap(speed, lead.speed) if lead.present else GAP_SCALE
+    behind = lag.gap - secure_gap(lag.speed, speed) if lag.present else GAP_SCALE
+    return [min(max(m / GAP_SCALE, -1.0), 1.0) for m in (ahead, behind)]
 
 
 FEATURE_SETS: dict[str, Callable[[Observation], list[float]]] = {

@@ -356,8 +356,16 @@ class Trainer:
         if self._pairs:  # TD3's updates two at a time (one compiled call); an odd one waits
             due -= due % 2
         if due:
+            first = not self.progress.updates
+            if first:  # a wait of its own, said as such: no iteration after it pays it
+                self.say(
+                    f"learning begins at {self.progress.global_step} env steps: loading the "
+                    "compiled update (compiled the first time on a machine, ~15 s; then ~4 s)"
+                )
             batches = [self.buffer.sample(batch_size) for _ in range(due)]
             self._losses += [metrics["critic_loss"] for metrics in agent.update_many(batches)]
+            if first:
+                self.say(f"the compiled update is ready ({clock() - sent:.1f} s)")
         self.progress.updates += due
         self._updates_due -= due
         updated = clock()

@@ -18,7 +18,11 @@ pytest.importorskip("highway_env")
 
 from agent_client.cli.main import main
 from agent_client.conformance.checks import PASS, run_checks
+from agent_client.drivers.episode import run_episode
+from agent_client.drivers.mobil import IDMMobilDriver
+from agent_client.envs.remote_env import RemoteEnv
 from agent_client.training.run_log import read_rows
+from protocol.messages import ROAD_RANGE, EndReason
 from tests.conftest import RunningServer, sim_server
 
 pytestmark = pytest.mark.slow
@@ -51,8 +55,9 @@ def test_check_command_against_the_highway_server(highway_server: RunningServer)
     assert "backend highway 1.12" in details["handshake"]
 
 
-def test_the_multi_lane_scenario_conforms(highway_server: RunningServer) -> None:
-    report = run_checks(highway_server.address, "cflc", timeout_s=60.0)
+@pytest.mark.parametrize("scenario", ["cflc", "merge"])
+def test_the_multi_lane_scenarios_conform(highway_server: RunningServer, scenario: str) -> None:
+    report = run_checks(highway_server.address, scenario, timeout_s=60.0)
     statuses = {r.name: r.status for r in report.results}
     assert set(statuses) >= CHECKS and set(statuses.values()) == {PASS}, report.format_table()
 
@@ -117,3 +122,27 @@ def test_lane_changing_training_runs_on_cflc(highway_server: RunningServer, tmp_
     rows = read_rows(tmp_path / "episodes.csv")
     assert len(rows) == 1
     assert int(rows[0]["lane_changes_started"]) + int(rows[0]["lane_changes_refused"]) > 0
+
+
+@pytest.mark.parametrize("scenario", ["merge", "exit"])
+def test_idm_mobil_makes_the_lane_changes_its_route_needs(
+    highway_server: RunningServer, scenario: str
+) -> None:
+    """The client's IDM+MOBIL reads the road ahead off the wire (protocol 1.6) and leaves the
+    lane that ends: onto the motorway from the acceleration lane, off it by the exit."""
+    env = RemoteEnv(highway_server.address, scenario, reward=lambda *_: 0.0, report_ceiling=False)
+    try:
+        episodes = [run_episode(env, IDMMobilDriver(), seed) for seed in range(3)]
+    finally:
+        env.close()
+    for episode in episodes:
+        stream = episode.observations
+        assert all(o.road is not None for o in stream)
+        assert stream[-1].reason == EndReason.END_OF_ROAD, (episode.seed, stream[-1].road)
+        assert not any(o.events.collision for o in stream)
+        assert any(o.events.lane_change_started for o in stream), episode.seed
+        last = stream[-1].road
+        assert last is not None and last.lanes_to_change == 0 and last.lane_end == ROAD_RANGE
+        asked = stream[0].road
+        assert asked is not None
+        assert asked.lanes_to_change == 0 if scenario == "merge" else asked.lanes_to_change <= 0

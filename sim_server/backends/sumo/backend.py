@@ -224,6 +224,7 @@ class SumoBackend(Backend):
         self._logs: Path | None = None
         """A temporary folder of SSM logs, made when first needed."""
         self._log_numbers = itertools.count()
+        self._lane_lengths: dict[str, float] = {}
         if over_traci is not None and traci_port is not None:
             try:
                 self._api = over_traci.attach()
@@ -305,6 +306,7 @@ class SumoBackend(Backend):
             log = self._new_ssm_log() if measures.ssm else None
             device = ssm.device_args(EGO_ID, log) if log is not None else []
             self._load(["-c", str(files.config), "--seed", str(seed), *_FORCED_ARGS, *device])
+            self._lane_lengths = {}  # another network, perhaps
             self._drop_old_logs(keep=log)
             if layout is not None:
                 first = self._place_egos(layout, slots, ids, episode_options, measures, many)
@@ -994,6 +996,13 @@ class SumoBackend(Backend):
 
     # ----------------------------------------------------------------------- observation
 
+    def _lane_length(self, lane_id: str) -> float:
+        """A lane's length (m), asked of SUMO once per network."""
+        length = self._lane_lengths.get(lane_id)
+        if length is None:
+            length = self._lane_lengths[lane_id] = self._api.lane.getLength(lane_id)
+        return length
+
     def _lane(self, episode: _Episode, ego_id: str, lane_id: str | None = None) -> tuple[int, int]:
         """The ego's lane index and the number of lanes of its edge (one query when cached)."""
         api = self._api
@@ -1035,7 +1044,10 @@ class SumoBackend(Backend):
             speed_limit=self._api.lane.getMaxSpeed(lane_id),
             changing_lane=0 if ego.lane_change is None else ego.lane_change.direction,
         )
-        road = road_ahead(vehicle.getBestLanes(ego_id), lane_id, vehicle.getLanePosition(ego_id))
+        road = road_ahead(
+            vehicle.getBestLanes(ego_id), lane_id, vehicle.getLanePosition(ego_id),
+            self._lane_length,
+        )  # fmt: skip
         if road is None:  # on a junction
             last = ego.last
             driven = position - last.ego.position if last is not None else 0.0

@@ -1,12 +1,14 @@
 """The road ahead of an ego, from what SUMO's own lane-change model plans with.
 
 `vehicle.getBestLanes` gives, for every lane of the ego's edge, how far a vehicle can drive from
-the start of that lane and stay on its route (``length``), and the signed number of lanes to
-cross to the best lane (``offset``, positive to the left). SUMO counts a lane as going on where
-its continuation can still reach the route by changing lanes further down the road, so the
-distances are those within which a change must have happened: the end of an acceleration lane,
-a lane drop, a lane that does not lead to the exit. The lanes that go on farthest lead to the end
-of the route (or beyond SUMO's look-ahead of at least 3 km): they are reported at `ROAD_RANGE`.
+the start of that lane and stay on its route (``length``), the signed number of lanes to cross to
+the best lane (``offset``, positive to the left), and the lanes it leads into without a change
+(``nextLanes``). SUMO counts a lane as going on where its continuation can still reach the route
+by changing lanes further down the road; the road ahead takes the shorter of that and the lanes
+it leads into, so that the distances are those within which a change must have happened: the end
+of an acceleration lane (seen from its ramp too), a lane drop, a lane that does not lead to the
+exit. The lanes that go on farthest lead to the end of the route (or beyond SUMO's look-ahead of
+at least 3 km): they are reported at `ROAD_RANGE`.
 
 On a junction (an internal lane) SUMO reports only the lane the ego leads into: the road there is
 the one of the lane it came from, carried on by the distance driven (`carried`).
@@ -17,6 +19,7 @@ Source: SUMO docs, TraCI "Vehicle Value Retrieval" (best lanes, 0xb2); src/micro
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from protocol.messages import ROAD_RANGE, Road
@@ -25,14 +28,17 @@ LONGEST_TOLERANCE = 1.0
 """Metres within which a lane counts as going on as far as the longest of its edge (the lanes of
 one edge share its length; their junction lanes may differ a little)."""
 
-_LENGTH, _OFFSET = 1, 3
+_LENGTH, _OFFSET, _NEXT = 1, 3, 5
 """Positions in a best-lanes entry: (lane id, length, occupation, offset, allows continuation,
 next lanes)."""
 
 
-def road_ahead(best_lanes: Any, lane_id: str, lane_position: float) -> Road | None:
-    """The `Road` of an ego at `lane_position` on `lane_id`, from its `best_lanes`; None on a
-    junction's internal lane, for which SUMO reports only the lane it leads into (`carried`)."""
+def road_ahead(
+    best_lanes: Any, lane_id: str, lane_position: float, length_of: Callable[[str], float]
+) -> Road | None:
+    """The `Road` of an ego at `lane_position` on `lane_id`, from its `best_lanes` (and
+    `length_of` a lane); None on a junction's internal lane, for which SUMO reports only the
+    lane it leads into (`carried`)."""
     entries = {entry[0]: entry for entry in best_lanes}
     mine = entries.get(lane_id)
     if mine is None:
@@ -40,7 +46,10 @@ def road_ahead(best_lanes: Any, lane_id: str, lane_position: float) -> Road | No
     longest = max(entry[_LENGTH] for entry in best_lanes) - LONGEST_TOLERANCE
 
     def end(entry: Any) -> float:
-        length = entry[_LENGTH]
+        # SUMO's length lets changes further down the road count: on a ramp's single lane, the
+        # whole route. The lanes it leads into without a change may end sooner.
+        following = sum(length_of(lane) for lane in entry[_NEXT])
+        length = min(entry[_LENGTH], following) if following else entry[_LENGTH]
         if length >= longest:
             return ROAD_RANGE
         return min(ROAD_RANGE, max(0.0, length - lane_position))

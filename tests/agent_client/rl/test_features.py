@@ -50,17 +50,28 @@ def test_the_lane_decision_phase_is_the_last_feature() -> None:
 
 def test_the_road_features_read_the_route() -> None:
     lc, road = FeatureMap("lc"), FeatureMap("road")
-    assert road.dim == lc.dim + 5
+    assert road.dim == lc.dim + 7
     merging = Road(lane_end=100.0, lanes_to_change=1, left_lane_end=ROAD_RANGE, right_lane_end=0.0)
     obs = make_observation(ego=Ego(20.0, 0.0, 0, 3, 100.0, 27.78), road=merging)
     x = road(obs)
     assert x[: lc.dim] == pytest.approx(lc(obs))
-    assert x[lc.dim :] == pytest.approx([0.1, 0.5, 1.0, 0.0, 0.5])  # 100 m, +1, 5 s of 10
+    # 100 m, +1, 5 s of 10; nobody on the left: both gaps a full 100 m longer than needed
+    assert x[lc.dim :] == pytest.approx([0.1, 0.5, 1.0, 0.0, 0.5, 1.0, 1.0])
 
 
 def test_the_road_features_are_those_of_the_open_road_without_one() -> None:
     """A server older than 1.6, or cf and cflc: the lanes beside it repeat lc's flags."""
     road = FeatureMap("road")
     middle = make_observation(ego=Ego(15.0, 0.0, 1, 3, 100.0, 22.22))
-    assert road(middle)[-5:] == pytest.approx([1.0, 0.0, 1.0, 1.0, 1.0])
-    assert road(replace(middle, road=OPEN_ROAD))[-5:] == pytest.approx([1.0, 0.0, 1.0, 1.0, 1.0])
+    expected = [1.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0]
+    assert road(middle)[-7:] == pytest.approx(expected)
+    assert road(replace(middle, road=OPEN_ROAD))[-7:] == pytest.approx(expected)
+
+
+def test_the_gap_margins_say_how_far_the_gap_on_the_routes_side_is_from_a_safe_one() -> None:
+    merging = Road(lane_end=100.0, lanes_to_change=1, left_lane_end=ROAD_RANGE, right_lane_end=0.0)
+    close = Neighbour(True, 10.0, 3.2, 20.0, "lead")  # 12.5 m short of the secure 22.5 m
+    absent = Neighbour(False, 200.0, 0.0, 0.0)
+    near = Neighbours(close, absent, absent, absent, absent, absent)
+    obs = make_observation(ego=Ego(20.0, 0.0, 0, 3, 100.0, 27.78), neighbours=near, road=merging)
+    assert FeatureMap("road")(obs)[-2:] == pytest.approx([-0.125, 1.0])

@@ -13,7 +13,7 @@ from agent_client.rl.lanes import (
     choose_lanes,
     secure_gap,
 )
-from protocol.messages import Ego, Neighbour, Neighbours
+from protocol.messages import ROAD_RANGE, Ego, Neighbour, Neighbours, Road
 from tests.protocol.test_codec import make_observation
 
 
@@ -102,3 +102,14 @@ def test_the_gap_rule_masks_changes_into_gaps_visibly_too_small(
     obs = make_observation(ego=ego(1), neighbours=sides(**slots))  # the ego at 20 m/s
     assert LaneChoice(3, gap_rule=True).mask(obs).tolist() == expected
     assert LaneChoice(3).mask(obs).tolist() == [True, True, True]  # without it: the road only
+
+
+@pytest.mark.parametrize(("lane_end", "unmasked"), [(150.0, True), (170.0, False)])
+def test_near_the_lane_end_the_change_towards_the_route_is_left_to_the_simulator(
+    lane_end: float, unmasked: bool
+) -> None:
+    """Within 8 s of the end (160 m at 20 m/s) the gap rule no longer masks the route's side."""
+    merging = Road(lane_end, 1, ROAD_RANGE, 0.0)
+    blocked = sides(left_leader=near(10.0, 20.0), right_leader=near(10.0, 20.0))
+    obs = make_observation(ego=ego(1), neighbours=blocked, road=merging)
+    assert LaneChoice(3, gap_rule=True).mask(obs).tolist() == [True, unmasked, False]

@@ -13,6 +13,7 @@ from agent_client.training.config import (
     apply_overrides,
     load_config_file,
     parse_assignment,
+    recommended,
 )
 
 
@@ -73,8 +74,9 @@ def test_reward_params_reach_the_reward_and_merge_like_the_learner_table(tmp_pat
     file = tmp_path / "run.toml"
     file.write_text("[reward_params]\ndesired_headway = 1.1\n")
     args = build_parser().parse_args(
-        ["train", "--config", str(file), "--set", "reward_params.jerk_weight=0.25"]
-    )
+        ["train", "--scenario", "cflc", "--config", str(file),
+         "--set", "reward_params.jerk_weight=0.25"]
+    )  # fmt: skip
     config = build_config(args)
     assert config.reward_params == {"desired_headway": 1.1, "jerk_weight": 0.25}
     reward = config.reward_fn()
@@ -118,40 +120,52 @@ def _shipped(name: str) -> TrainConfig:
     return build_config(build_parser().parse_args(["train", "--config", str(path)]))
 
 
-def test_the_shipped_cf_configuration_loads_and_changes_what_it_says() -> None:
-    config = _shipped("cf.toml")
+def test_the_recommended_cf_settings_are_what_train_uses_by_default() -> None:
+    plain = build_config(build_parser().parse_args(["train", "--scenario", "cf"]))
+    assert plain == recommended("cf") == build_config(build_parser().parse_args(["train"]))
     default = TrainConfig()
-    assert config.eval_budget == 1.0 != default.eval_budget
-    assert config.warmup_policy == "random" != default.warmup_policy
-    assert config.learner.deploy_tau == 0.001 != default.learner.deploy_tau
-    assert config.reward_params == {  # exactly these: an extra key would change the reward too
+    assert plain.eval_budget == 1.0 != default.eval_budget
+    assert plain.warmup_policy == "random" == default.warmup_policy
+    assert plain.learner.deploy_tau == 0.001 != default.learner.deploy_tau
+    assert plain.reward_params == {  # exactly these: an extra key would change the reward too
         "desired_headway": 1.1,
         "headway_far_sigma": 0.5,
         "headway_far_weight": 0.5,
     }
-    reward = config.reward_fn()
+    reward = plain.reward_fn()
     assert reward.desired_headway == 1.1  # type: ignore[attr-defined]
     assert reward.headway_far_sigma == 0.5  # type: ignore[attr-defined]
     assert reward.headway_far_weight == 0.5  # type: ignore[attr-defined]
-    # nothing else moves: the rest is the recommended configuration
-    learner = dataclasses.replace(config.learner, deploy_tau=default.learner.deploy_tau)
+    # nothing else moves: the rest is the default configuration
+    learner = dataclasses.replace(plain.learner, deploy_tau=default.learner.deploy_tau)
     rest = dataclasses.replace(
-        config,
-        eval_budget=default.eval_budget,
-        warmup_policy=default.warmup_policy,
-        reward_params={},
-        learner=learner,
+        plain, eval_budget=default.eval_budget, reward_params={}, learner=learner
     )
     assert rest == default
 
 
-def test_the_shipped_cflc_configuration_loads_and_changes_what_it_says() -> None:
-    config = _shipped("cflc.toml")
-    default = TrainConfig()
-    assert config.scenario == "cflc" != default.scenario
-    assert config.warmup_policy == "random" != default.warmup_policy
-    # nothing else moves: the rest is the recommended configuration
-    rest = dataclasses.replace(
-        config, scenario=default.scenario, warmup_policy=default.warmup_policy
-    )
-    assert rest == default
+def test_the_recommended_reward_parameters_go_only_with_their_reward() -> None:
+    parsed = build_parser().parse_args(["train", "--scenario", "cf", "--reward", "ra3"])
+    config = build_config(parsed)
+    assert config.reward_params == {} and config.eval_budget == 1.0
+
+
+def test_other_scenarios_train_with_the_defaults() -> None:
+    assert recommended("cflc") == TrainConfig(scenario="cflc")
+    assert recommended(["merge", "cf"]) == TrainConfig(scenario=["merge", "cf"])
+    parsed = build_parser().parse_args(["train", "--scenario", "cflc"])
+    assert build_config(parsed) == TrainConfig(scenario="cflc")
+
+
+def test_the_shipped_configuration_files_spell_the_recommended_settings_out() -> None:
+    assert _shipped("cf.toml") == recommended("cf")
+    assert _shipped("cflc.toml") == recommended("cflc")
+
+
+def test_a_configuration_file_overrides_the_recommended_settings(tmp_path: Path) -> None:
+    file = tmp_path / "mine.toml"
+    file.write_text("eval_budget = 0.4\n[learner]\ndeploy_tau = 0.005\n")
+    parsed = build_parser().parse_args(["train", "--scenario", "cf", "--config", str(file)])
+    config = build_config(parsed)
+    assert config.eval_budget == 0.4 and config.learner.deploy_tau == 0.005
+    assert config.reward_params == recommended("cf").reward_params  # what it did not name

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import itertools
+from collections.abc import Callable, Iterable
+from dataclasses import replace
 
 import pytest
 
@@ -10,12 +12,20 @@ pytest.importorskip("highway_env")
 
 from agent_client.drivers.idm import IDMDriver
 from protocol.errors import ErrorCode
-from protocol.messages import Observation, OptionValue
-from sim_server.backends.highway import HighwayBackend
+from protocol.messages import ROAD_RANGE, EndReason, Observation, OptionValue, Road, road_ahead
+from sim_server.backends.highway import SCENARIOS, CorridorScenario, HighwayBackend
+from sim_server.backends.options import TrafficOptions
+from sim_server.backends.sumo.corridors import CORRIDORS
 from sim_server.errors import BackendError
 
 LENGTH = 2000.0
 FREE_ROAD = {"vehicles_count": 0, "vehicles_behind": 0}
+MOTORWAY, RAMP = 100 / 3.6, 80 / 3.6
+MERGE: dict[str, OptionValue] = {
+    "main_lanes": 2, "acceleration_lane": 250.0, "ramp_length": 150.0, "report_ceiling": False,
+}  # fmt: skip
+"""A merge whose ramp and acceleration lane end 400 m from the ramp's start (900 m: the route)."""
+Policy = Callable[[Observation], tuple[float, int]]
 
 
 @pytest.fixture
@@ -46,15 +56,26 @@ def run(
 
 def test_scenarios_offer_only_the_options_the_backend_honours(backend: HighwayBackend) -> None:
     infos = {s.name: s for s in backend.scenarios()}
-    assert set(infos) == {"cf", "cflc"}
+    assert set(infos) == {"cf", "cflc", "merge", "exit", "lanedrop"}
     for info in infos.values():
         assert info.step_length == pytest.approx(0.1)
         for name in ("decision_interval", "max_episode_time", "warmup", "stop_speed",
-                     "stop_gap", "stop_patience", "report_ceiling", "ego_driver",
-                     "vehicles_count", "vehicles_behind", "vehicles_density"):  # fmt: skip
+                     "stop_gap", "stop_patience", "lane_end_patience", "report_ceiling",
+                     "ego_driver", "vehicles_count", "vehicles_behind",
+                     "vehicles_density"):  # fmt: skip
             assert name in info.options, name
-        for name in ("insertion_timeout", "flow", "sigma", "speed_factor_mean"):
+        for name in ("insertion_timeout", "flow", "sigma", "speed_factor_mean", "ramp_flow",
+                     "exit_share", "ego_start"):  # fmt: skip
             assert name not in info.options, name
+    own = {
+        "merge": {"main_lanes": 0, "acceleration_lane": 0.0, "ramp_length": 0.0,
+                  "ramp_vehicles": 2},
+        "exit": {"main_lanes": 0, "exit_distance": 0.0, "deceleration_lane": 0.0, "ego_lane": -1},
+        "lanedrop": {"drop_distance": 0.0, "dropped_lane": "random", "ego_lane": -1},
+    }  # fmt: skip
+    for name, defaults in own.items():
+        assert {k: infos[name].options[k] for k in defaults} == defaults
+        assert infos[name].options["vehicles_density"] == 0.5
     assert backend.name == "highway"
     assert backend.version.startswith("1.12")
 
@@ -305,4 +326,241 @@ def test_the_simulator_can_drive_the_ego(backend: HighwayBackend) -> None:
 def test_invalid_options_are_refused(backend: HighwayBackend, changes: dict) -> None:
     with pytest.raises(BackendError) as refused:
         backend.reset("cf", 1, options(backend, "cf", **changes))
+    assert refused.value.code == ErrorCode.INVALID_OPTION
+
+
+# ----------------------------------------------------------------------- the road ahead (1.6)
+
+
+def drive(
+    backend: HighwayBackend, first: Observation, policy: Policy, steps: int = 3000
+) -> list[Observation]:
+    """`first` and every observation after it, `policy` driving, until the episode ends."""
+    stream = [first]
+    while not (stream[-1].terminated or stream[-1].truncated) and len(stream) <= steps:
+        stream.append(backend.step(stream[-1].seq + 1, *policy(stream[-1])))
+    return stream
+
+
+def scripted(change: bool = True) -> Policy:
+    """A plain driver for the corridors: towards the speed limit, about 1.5 s behind its leader,
+    braking to stop before the end of a lane it must leave; with `change`, it asks at every step
+    for the lane change the road ahead needs (refused while one is under way or unsafe)."""
+
+    def policy(obs: Observation) -> tuple[float, int]:
+        ego, leader, road = obs.ego, obs.neighbours.leader, obs.road
+        assert road is not None
+        acceleration = min(1.5, ego.speed_limit - ego.speed)
+        if leader.present:
+            keep = 0.5 * (leader.gap - 5.0 - 1.5 * ego.speed) + leader.speed - ego.speed
+            acceleration = min(acceleration, keep)
+        if road.lanes_to_change and road.lane_end < ROAD_RANGE:
+            needed = ego.speed**2 / (2.0 * max(road.lane_end - 3.0, 0.1))
+            if needed > 1.5:
+                acceleration = min(acceleration, -needed)
+        towards = (road.lanes_to_change > 0) - (road.lanes_to_change < 0)
+        return acceleration, towards if change else 0
+
+    return policy
+
+
+def test_every_lane_of_cf_and_cflc_leads_on(backend: HighwayBackend) -> None:
+    for scenario, seed in (("cf", 1), ("cflc", 1), ("cflc", 2), ("cflc", 3)):
+        first = backend.reset(scenario, seed, options(backend, scenario, report_ceiling=False))
+        pattern = [(0.0, 1), (0.0, 0), (0.0, -1)] * 10
+        for obs in run(backend, first, pattern):
+            assert obs.road == road_ahead(replace(obs, road=None))  # the open road
+    assert first.road is not None and first.road.lane_end == ROAD_RANGE
+
+
+def test_the_corridors_draw_the_sumo_corridors_geometry(backend: HighwayBackend) -> None:
+    """The same seed (and options) draws the same lengths and lanes on both servers."""
+    traffic = TrafficOptions()
+    for kind in ("merge", "exit", "lanedrop"):
+        ours = SCENARIOS[kind]
+        assert isinstance(ours, CorridorScenario)
+        theirs = CORRIDORS[kind]
+        for seed in range(12):
+            info = {s.name: s for s in backend.scenarios()}[kind]
+            geometry = ours.geometry(seed, info.options)
+            net = theirs.network(theirs.OPTIONS[kind]().parse({}), traffic, seed)
+            x = {name: x for name, x, _ in net.nodes}
+            lanes = {edge[0]: edge[3] for edge in net.edges}
+            if kind == "merge":
+                assert geometry.main_lanes == lanes["main_up"]
+                assert geometry.acceleration_lane == x["merge_end"] - x["merge_start"]
+                assert geometry.ramp_length == x["merge_start"] - x["ramp_start"]
+            elif kind == "exit":
+                assert geometry.main_lanes == lanes["main"]
+                assert geometry.exit_distance == x["diverge"] - x["start"]
+                assert geometry.deceleration_lane == x["diverge"] - x["decel_start"]
+            else:
+                assert geometry.drop_distance == x["drop"] - x["start"]
+                first_going_on = net.connections[0][2]  # SUMO counts lanes from the right
+                assert geometry.dropped_lane == ("left" if first_going_on == 0 else "right")
+    merge = SCENARIOS["merge"]
+    assert isinstance(merge, CorridorScenario)
+    assert merge.geometry(1, {**options(backend, "merge"), **MERGE}).ramp_length == 150.0
+
+
+def test_the_ego_enters_from_the_ramp_and_sees_its_lane_end(backend: HighwayBackend) -> None:
+    changes = {**MERGE, "vehicles_count": 0, "vehicles_behind": 0, "ramp_vehicles": 0}
+    first = backend.reset("merge", 1, options(backend, "merge", **changes))
+    assert (first.ego.lane, first.ego.lane_count) == (0, 1)  # the ramp: one lane
+    assert first.ego.speed_limit == pytest.approx(RAMP)
+    assert 0.0 < first.ego.position < 150.0
+    assert first.road == Road(pytest.approx(400.0 - first.ego.position), 0, 0.0, 0.0)
+    for side in ("left_leader", "left_follower", "right_leader", "right_follower"):
+        assert not getattr(first.neighbours, side).present
+    stream = drive(backend, first, scripted(change=False), steps=200)
+    merging = [o for o in stream if o.ego.lane_count == 3]
+    assert merging, "never reached the acceleration lane"
+    for obs in merging:
+        assert (obs.ego.lane, obs.ego.speed_limit) == (0, pytest.approx(MOTORWAY))
+        assert obs.road == Road(pytest.approx(400.0 - obs.ego.position), 1, ROAD_RANGE, 0.0)
+    ends = [o.road.lane_end for o in stream if o.road is not None]
+    assert all(later <= before for before, later in itertools.pairwise(ends))
+
+
+def test_a_merge_reaches_the_end_of_the_road(backend: HighwayBackend) -> None:
+    changes = {**MERGE, "vehicles_count": 8, "vehicles_behind": 3, "ramp_vehicles": 1}
+    first = backend.reset("merge", 2, options(backend, "merge", **changes))
+    stream = drive(backend, first, scripted())
+    last = stream[-1]
+    assert last.reason == EndReason.END_OF_ROAD and last.ego.position == 900.0
+    assert not any(o.events.collision for o in stream)
+    (merged,) = [i for i, o in enumerate(stream) if o.events.lane_change_completed]
+    before, after = stream[:merged], stream[merged:]
+    on_the_lane = [o for o in before if (o.ego.lane, o.ego.lane_count) == (0, 3)]
+    ends = [o.road.lane_end for o in on_the_lane if o.road is not None]
+    assert len(ends) == len(on_the_lane) > 10
+    assert all(later < before for before, later in itertools.pairwise(ends))
+    assert all(o.road is not None and o.road.lanes_to_change == 1 for o in on_the_lane)
+    assert any(o.action.lane_change_refused == "gap_too_small" for o in before)
+    for obs in after:  # on the motorway's right lane: beside the acceleration lane, then not
+        assert obs.ego.lane == obs.ego.lane_count - 2
+        assert obs.road is not None and obs.road.lane_end == ROAD_RANGE
+        assert obs.road.lanes_to_change == 0 and obs.road.left_lane_end == ROAD_RANGE
+        beside = obs.road.right_lane_end
+        assert beside == (
+            0.0 if obs.ego.lane == 0 else pytest.approx(max(0.0, 400.0 - obs.ego.position))
+        )
+    assert after[-1].road == Road(ROAD_RANGE, 0, ROAD_RANGE, 0.0)  # the lane has ended
+
+
+def test_keeping_a_lane_that_ends_ends_at_the_lane_end(backend: HighwayBackend) -> None:
+    changes = {**MERGE, "vehicles_count": 0, "vehicles_behind": 0, "ramp_vehicles": 0}
+    waits = backend.reset("merge", 1, options(backend, "merge", lane_end_patience=2.0, **changes))
+    stream = drive(backend, waits, scripted(change=False))
+    last = stream[-1]
+    assert last.terminated and last.reason == EndReason.LANE_END
+    assert last.road is not None and last.road.lane_end <= 15.0 and last.ego.speed < 1.0
+    standing = [o for o in stream if o.ego.speed < 1.0 and o.road and o.road.lane_end <= 15.0]
+    assert last.time - standing[0].time == pytest.approx(2.0)
+    # Driving on past the end is ended there at once: no lane goes on beyond it.
+    rolls = backend.reset("merge", 1, options(backend, "merge", **changes))
+    past = drive(backend, rolls, lambda obs: (0.0, 0))[-1]
+    assert past.reason == EndReason.LANE_END and past.ego.speed == pytest.approx(rolls.ego.speed)
+    assert past.road is not None and past.road.lane_end == 0.0
+    assert 400.0 <= past.ego.position < 400.0 + past.ego.speed * 0.1 + 1e-9
+
+
+def test_the_exit_is_reached_by_moving_right(backend: HighwayBackend) -> None:
+    changes: dict[str, OptionValue] = {
+        "main_lanes": 3, "exit_distance": 600.0, "deceleration_lane": 200.0, "ego_lane": 2,
+        "warmup": 0.0, "vehicles_count": 2, "vehicles_behind": 2, "report_ceiling": False,
+    }  # fmt: skip
+    first = backend.reset("exit", 3, options(backend, "exit", **changes))
+    start = first.ego.position
+    assert (first.ego.lane, first.ego.lane_count) == (2, 3)
+    assert first.road == Road(pytest.approx(600.0), -2, 0.0, pytest.approx(600.0))
+    stream = drive(backend, first, scripted())
+    last = stream[-1]
+    assert last.reason == EndReason.END_OF_ROAD
+    assert last.ego.position == pytest.approx(start + 600.0 + 250.0)  # the off-ramp's end
+    assert (last.ego.lane_count, last.ego.speed_limit) == (1, pytest.approx(RAMP))
+    assert sum(o.events.lane_change_completed for o in stream) == 3
+    decelerating = [o for o in stream if o.ego.lane_count == 4 and o.ego.lane == 0]
+    assert decelerating and all(o.road and o.road.lane_end == ROAD_RANGE for o in decelerating)
+    kept = backend.reset("exit", 3, options(backend, "exit", **changes))
+    missed = drive(backend, kept, lambda obs: (0.0, 0))[-1]  # on, past the exit
+    assert missed.reason == EndReason.LANE_END and missed.ego.speed == kept.ego.speed
+    assert 600.0 < missed.ego.position - start < 600.0 + kept.ego.speed * 0.1 + 1e-9
+
+
+def test_a_dropped_lane_is_left_for_the_lanes_that_go_on(backend: HighwayBackend) -> None:
+    changes: dict[str, OptionValue] = {
+        "drop_distance": 300.0, "dropped_lane": "right", "ego_lane": 0, "warmup": 0.0,
+        "vehicles_count": 2, "vehicles_behind": 1, "report_ceiling": False,
+    }  # fmt: skip
+    first = backend.reset("lanedrop", 4, options(backend, "lanedrop", **changes))
+    assert (first.ego.lane, first.ego.lane_count) == (0, 3)
+    assert first.road == Road(pytest.approx(300.0), 1, ROAD_RANGE, 0.0)
+    stream = drive(backend, first, scripted())
+    assert stream[-1].reason == EndReason.END_OF_ROAD
+    after = [o for o in stream if o.ego.position > first.ego.position + 300.0 + 2.5]
+    assert after and all(o.ego.lane_count == 2 for o in after)  # beyond the drop (its middle)
+
+
+def test_highway_envs_own_drivers_merge(backend: HighwayBackend) -> None:
+    """With ``ego_driver`` simulator the ego is one of highway-env's humans: MOBIL takes it off
+    the acceleration lane (towards its route's lane, when safe), as it does the humans."""
+    changes = {**MERGE, "ego_driver": "simulator"}
+    first = backend.reset("merge", 3, options(backend, "merge", **changes))
+    human = first.neighbours.leader.id  # ahead on the ramp
+    assert human.startswith("h") and first.ego.lane_count == 1
+    stream = drive(backend, first, lambda obs: (0.0, 0))
+    assert stream[-1].reason == EndReason.END_OF_ROAD
+    assert not any(o.events.collision for o in stream)
+    assert {o.ego.lane_count for o in stream} >= {1, 3, 2}
+    merged_first = [
+        o for o in stream if (o.ego.lane, o.ego.lane_count) == (0, 3)
+        and o.neighbours.left_leader.id == human
+    ]  # fmt: skip
+    assert merged_first, "the human ahead on the ramp did not merge before the ego"
+
+
+def test_the_leader_at_entry_bounds_the_ego_only_along_its_route(backend: HighwayBackend) -> None:
+    cut = {"max_episode_time": 1.0, "report_ceiling": True}
+    first = backend.reset("merge", 4, options(backend, "merge", **cut))
+    last = run(backend, first, [(0.0, 0)] * 20)[-1]
+    assert last.reason == EndReason.TIME_LIMIT and last.ceiling is not None
+    assert last.ceiling.id == first.neighbours.leader.id  # the human ahead on the ramp
+    assert last.ceiling.arrival_time is not None and last.ceiling.arrival_time > last.time
+    first = backend.reset("exit", 4, options(backend, "exit", **cut))
+    assert first.neighbours.leader.present  # driving on past the exit: it bounds nothing
+    assert run(backend, first, [(0.0, 0)] * 20)[-1].ceiling is None
+
+
+def test_a_corridor_is_the_same_for_the_same_seed(backend: HighwayBackend) -> None:
+    def stream(seed: int) -> list[Observation]:
+        first = backend.reset("merge", seed, options(backend, "merge", report_ceiling=False))
+        return run(backend, first, [(1.0, 1), (0.0, 0), (-0.5, 1)] * 20)
+
+    once = stream(5)
+    assert stream(5) == once and stream(6) != once
+
+
+@pytest.mark.parametrize(
+    ("scenario", "changes"),
+    [
+        ("merge", {"main_lanes": 1}),
+        ("merge", {"acceleration_lane": 10.0}),
+        ("merge", {"ramp_vehicles": 21}),
+        ("exit", {"main_lanes": 5}),
+        ("exit", {"exit_distance": 250.0, "deceleration_lane": 200.0}),
+        ("exit", {"ego_lane": 4}),
+        ("lanedrop", {"dropped_lane": "middle"}),
+        ("lanedrop", {"drop_distance": 50.0}),
+        ("merge", {"egos": 16}),
+    ],
+)
+def test_invalid_corridor_options_are_refused(
+    backend: HighwayBackend, scenario: str, changes: dict[str, OptionValue]
+) -> None:
+    given = options(backend, scenario, **changes)
+    egos = given["egos"]
+    assert isinstance(egos, int)
+    with pytest.raises(BackendError) as refused:
+        backend.reset_many(scenario, 1, given, egos)  # egos 1: the one-ego reset
     assert refused.value.code == ErrorCode.INVALID_OPTION

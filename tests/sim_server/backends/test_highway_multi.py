@@ -12,7 +12,16 @@ pytest.importorskip("highway_env")
 from agent_client.drivers.idm import IDMDriver
 from protocol.codec import decode_reply, encode
 from protocol.errors import ErrorCode
-from protocol.messages import EgoObservation, MultiObservation, Observation, OptionValue
+from protocol.messages import (
+    ROAD_RANGE,
+    EgoObservation,
+    EndReason,
+    MultiObservation,
+    Observation,
+    OptionValue,
+    Road,
+    road_ahead,
+)
 from sim_server.backends.base import SINGLE_EGO_ID
 from sim_server.backends.highway import MAX_HIGHWAY_EGOS, HighwayBackend
 from sim_server.errors import BackendError
@@ -53,7 +62,9 @@ def running(frame: MultiObservation) -> list[str]:
 
 
 def as_observation(frame: MultiObservation, ego: EgoObservation) -> Observation:
-    return Observation(frame.seq, frame.time, ego.ego, ego.neighbours, ego.events, ego.action)
+    return Observation(
+        frame.seq, frame.time, ego.ego, ego.neighbours, ego.events, ego.action, road=ego.road
+    )
 
 
 def drive(
@@ -251,7 +262,7 @@ def test_many_egos_are_deterministic(backend: HighwayBackend) -> None:
 
 
 def test_one_ego_through_reset_many_is_the_one_ego_episode(backend: HighwayBackend) -> None:
-    for scenario in ("cf", "cflc"):
+    for scenario in ("cf", "cflc", "merge"):
         plain = HighwayBackend()
         obs = plain.reset(scenario, 9, options(plain, scenario))
         multi = reset_many(backend, scenario, 1, 9)
@@ -323,3 +334,42 @@ def test_an_ego_that_ends_inside_a_decision_is_observed_where_it_ended(
     assert crash.time == pytest.approx(first.time + crash.seq * 1.0)  # the others drove on
     assert running(crash) == ["ego.0", "ego.2"]
     assert frames[-1].truncated and frames[-1].time == pytest.approx(first.time + 30.0)
+
+
+def test_every_ego_sees_the_road_ahead(backend: HighwayBackend) -> None:
+    first = reset_many(backend, "cflc", 3, 2, max_episode_time=2.0, report_ceiling=False)
+    for frame in drive(backend, first, lambda ego, seq: (0.0, int(seq % 5 == 1))):
+        for ego in frame.egos:
+            assert ego.road == road_ahead(replace(as_observation(frame, ego), road=None))
+
+
+def test_egos_merge_one_after_another_from_the_ramp(backend: HighwayBackend) -> None:
+    merge = {"main_lanes": 2, "acceleration_lane": 250.0, "ramp_length": 150.0,
+             "ramp_vehicles": 0, "vehicles_count": 6, "report_ceiling": False,
+             "warmup": 7.0}  # fmt: skip
+    first = reset_many(backend, "merge", 2, 3, **merge)
+    rear, front = first.egos
+    assert (rear.id, front.id) == ("ego.0", "ego.1")
+    assert 0.0 < rear.ego.position < front.ego.position < 400.0
+    assert (rear.ego.lane_count, front.ego.lane_count) == (1, 3)  # the ramp; the lane after it
+    assert rear.neighbours.leader.id == "ego.1"  # seen across the ramp's end
+    assert front.neighbours.follower.id == "ego.0"
+    assert rear.neighbours.leader.gap == pytest.approx(front.ego.position - 5.0 - rear.ego.position)
+    for ego in first.egos:
+        assert ego.road == Road(pytest.approx(400.0 - ego.ego.position), int(ego.ego.lane_count > 1),
+                                ROAD_RANGE if ego.ego.lane_count > 1 else 0.0, 0.0)  # fmt: skip
+
+    def merging(ego: EgoObservation, seq: int) -> tuple[float, int]:
+        road, leader = ego.road, ego.neighbours.leader
+        assert road is not None
+        acceleration = min(1.0, ego.ego.speed_limit - ego.ego.speed)
+        if leader.present:
+            keep = 0.5 * (leader.gap - 5.0 - 1.5 * ego.ego.speed) + leader.speed - ego.ego.speed
+            acceleration = min(acceleration, keep)
+        return acceleration, road.lanes_to_change
+
+    frames = drive(backend, first, merging)
+    ends = {e.id: e.reason for frame in frames for e in frame.egos if e.reason}
+    assert ends == {"ego.0": EndReason.END_OF_ROAD, "ego.1": EndReason.END_OF_ROAD}
+    completed = {e.id for frame in frames for e in frame.egos if e.events.lane_change_completed}
+    assert completed == {"ego.0", "ego.1"}

@@ -142,7 +142,9 @@ def test_the_road_ahead_knows_the_exit_distance_and_the_lanes_to_cross(sumo: Sum
 def test_the_road_ahead_on_an_acceleration_lane_and_on_the_open_road(sumo: SumoBackend) -> None:
     obs = reset(sumo, "merge", main_lanes=2, acceleration_lane=250.0, ramp_length=150.0, flow=0.0,
                 ramp_flow=0.0)  # fmt: skip
-    assert obs.road is not None and obs.road.lanes_to_change == 0  # on the ramp: nothing to do
+    ramp = obs.road  # on the ramp: nothing to do yet, but the end of the lane is in sight
+    assert ramp is not None and ramp.lanes_to_change == 0
+    assert ramp.lane_end == pytest.approx(150.0 + 250.0 - obs.ego.position, abs=JUNCTION_SLACK)
     while obs.ego.lane_count == 1:
         obs = drive(sumo, obs, 1)
     road = obs.road
