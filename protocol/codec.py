@@ -16,7 +16,8 @@ Two paths, one verdict:
   scalars and arrays of either, which are the ones sent at every step (`Step`, `Observation`;
   also `Close`, `Bye`, `Error`). msgspec packs them, and reads them straight into the
   dataclass, checking structure and types. A compiled check then adds what msgspec does not
-  check (finite numbers, int64, string lengths). What each path costs: README, "Bridge performance".
+  check (finite numbers, int64, string lengths). What each path costs: docs/results.md,
+  "Bridge performance".
 
 The fast path accepts a frame only if it is the frame `encode` writes for the message read from
 it. The precise path decodes that frame to the same message (the tests check both directions),

@@ -38,6 +38,10 @@ FALL_BACK = 4.0
 """m/s below the target lane's speed at which the ego lets a vehicle there pass."""
 SPEED_GAIN = 0.5
 """1/s: how fast the ego takes up the target lane's speed (a 2 s time constant)."""
+JERK_STEP = 0.5
+"""m/s²: the most the acceleration changes from one decision to the next, unless braking at
+`MobilParams.stop_deceleration` or harder (5 m/s³ at 0.1 s decisions: under the 5.6 m/s³ a
+passenger notices, docs/evaluation.md)."""
 ALIGN_GAIN = 0.5
 """1/s: the speed offset per metre the ego is off the middle of the gap it moves into."""
 
@@ -89,25 +93,45 @@ class IDMMobilDriver:
         if obs.seq == 0:
             self._next_decision = -math.inf
         road = road_ahead(obs)
+        acceleration = self.acceleration(obs)
+        must = _sign(road.lanes_to_change)
+        if obs.ego.changing_lane:
+            return acceleration, 0
+        if self._strategic(obs, road):  # every decision, safety only
+            if self._safe(obs, must) or self._urgent(obs, road):
+                return acceleration, must  # the simulator refuses an unsafe gap
+            return acceleration, 0
+        if obs.time < self._next_decision:
+            return acceleration, 0
+        self._next_decision = obs.time + self.mobil.decision_interval - 1e-9
+        return acceleration, self._discretionary(obs, road, must)
+
+    def acceleration(self, obs: Observation) -> float:
+        """The acceleration alone (m/s²), which keeps no state: IDM behind the leader, before
+        the end of a lane the route must leave, and into the gap beside it where the change
+        the route needs cannot be made yet (what a policy trained on top of this driver
+        corrects, `agent_client.drivers.policy.ActionScale`)."""
+        road = road_ahead(obs)
         ego = obs.ego
         must = _sign(road.lanes_to_change)
         acceleration = self._idm(ego.speed, ego.speed_limit, obs.neighbours.leader)
         if must:
             acceleration = min(acceleration, self._stop_before(road.lane_end, ego.speed))
-        lanes = abs(road.lanes_to_change)
-        strategic = must != 0 and road.lane_end <= self._look_ahead(ego.speed, lanes)
-        if ego.changing_lane:
-            return acceleration, 0
-        if strategic:  # every decision, safety only; else into a gap of the target lane
-            if self._safe(obs, must):
-                return acceleration, must
+        if not ego.changing_lane and self._strategic(obs, road) and not self._safe(obs, must):
             acceleration = min(acceleration, self._fit_in(obs, must))
-            urgent = road.lane_end <= max(self.mobil.urgent_distance, ego.speed * 6.0)
-            return acceleration, must if urgent else 0  # the simulator refuses an unsafe gap
-        if obs.time < self._next_decision:
-            return acceleration, 0
-        self._next_decision = obs.time + self.mobil.decision_interval - 1e-9
-        return acceleration, self._discretionary(obs, road, must)
+        if acceleration <= -self.mobil.stop_deceleration:
+            return acceleration  # braking hard: at once
+        previous = ego.acceleration  # else no faster change than a comfortable jerk allows
+        return min(max(acceleration, previous - JERK_STEP), previous + JERK_STEP)
+
+    def _strategic(self, obs: Observation, road: Road) -> bool:
+        """The route needs a change within the look-ahead."""
+        lanes = abs(road.lanes_to_change)
+        return lanes > 0 and road.lane_end <= self._look_ahead(obs.ego.speed, lanes)
+
+    def _urgent(self, obs: Observation, road: Road) -> bool:
+        """Near enough to the lane end to ask at every decision whatever the gap."""
+        return road.lane_end <= max(self.mobil.urgent_distance, obs.ego.speed * 6.0)
 
     # ----------------------------------------------------------------------- longitudinal
 

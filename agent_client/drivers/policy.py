@@ -1,39 +1,71 @@
 """A trained policy as a driver: features in, acceleration and lane change out.
 
 ``policy.pt`` holds the actor (and the critic that picks the lane), the feature set, the lane
-decision cadence and the acceleration scaling, so `agent-client drive --policy
-runs/NAME/policy.pt` needs nothing else. The driver is plain numpy: a process that only drives
-(an evaluation worker) never imports torch; reading and writing policy files does.
+decision cadence and the acceleration scaling (and the reference a residual policy corrects), so
+`agent-client drive --policy runs/NAME/policy.pt` needs nothing else. The driver is plain numpy: a
+process that only drives (an evaluation worker) never imports torch; reading and writing policy
+files does.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.rl.features import FeatureMap, FeatureMismatch
 from agent_client.rl.greedy import GreedyPolicy
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
 from protocol.messages import ActionSchema, Observation
 
+RESIDUAL_RANGE = 3.0
+"""m/s²: how far a residual policy's acceleration may stray from its reference's (±)."""
+
+RESIDUAL_BASES: dict[str, Callable[[Observation], float]] = {
+    "idm+mobil": IDMMobilDriver().acceleration,
+}
+"""The drivers a policy can be trained on top of: their acceleration, which keeps no state."""
+
 
 @dataclass(frozen=True)
 class ActionScale:
-    """Maps the actor's [-1, 1] onto the server's acceleration bounds (m/s^2)."""
+    """Maps the actor's [-1, 1] onto an acceleration (m/s^2): the server's bounds, or with
+    `residual` a correction of up to ±`RESIDUAL_RANGE` of a reference driver's acceleration
+    (residual policy learning, Silver et al. 2018, Johannink et al. 2019: the policy starts as
+    good as the reference, IDM + MOBIL on roads where lanes end, and learns what to do better)."""
 
     low: float
     high: float
+    residual: str = ""
+    """"" (the acceleration itself), or a key of `RESIDUAL_BASES`."""
+
+    def __post_init__(self) -> None:
+        if self.residual and self.residual not in RESIDUAL_BASES:
+            raise ValueError(
+                f"residual {self.residual!r} is not one of: {', '.join(RESIDUAL_BASES)}"
+            )
 
     @classmethod
-    def from_schema(cls, schema: ActionSchema) -> ActionScale:
-        return cls(schema.acceleration_min, schema.acceleration_max)
+    def from_schema(cls, schema: ActionSchema, residual: str = "") -> ActionScale:
+        return cls(schema.acceleration_min, schema.acceleration_max, residual)
 
-    def to_env(self, u: float) -> float:
-        return self.low + (u + 1.0) * 0.5 * (self.high - self.low)
+    def to_env(self, u: float, obs: Observation | None = None) -> float:
+        """The acceleration for the actor's `u` in the state `obs` (needed with `residual`)."""
+        if not self.residual:
+            return self.low + (u + 1.0) * 0.5 * (self.high - self.low)
+        assert obs is not None, "a residual policy's action depends on the observation"
+        base = RESIDUAL_BASES[self.residual](obs)
+        return min(max(base + RESIDUAL_RANGE * u, self.low), self.high)
 
-    def to_policy(self, acceleration: float) -> float:
-        u = 2.0 * (acceleration - self.low) / (self.high - self.low) - 1.0
+    def to_policy(self, acceleration: float, obs: Observation | None = None) -> float:
+        """The actor's `u` that gives `acceleration` in the state `obs` (clipped to [-1, 1])."""
+        if self.residual:
+            assert obs is not None, "a residual policy's action depends on the observation"
+            u = (acceleration - RESIDUAL_BASES[self.residual](obs)) / RESIDUAL_RANGE
+        else:
+            u = 2.0 * (acceleration - self.low) / (self.high - self.low) - 1.0
         return min(1.0, max(-1.0, u))
 
 
@@ -52,7 +84,7 @@ class PolicyDriver:
 
     def act(self, obs: Observation) -> tuple[float, int]:
         u, lane = self.policy.act(self.features(obs), self.lanes.mask(obs))
-        return self.scale.to_env(u), LANE_COMMANDS[lane]
+        return self.scale.to_env(u, obs), LANE_COMMANDS[lane]
 
 
 def save_policy(
@@ -72,6 +104,7 @@ def save_policy(
         "lane_decision_every": lanes.every,
         "lane_gap_rule": lanes.gap_rule,
         "acceleration_bounds": [scale.low, scale.high],
+        "residual": scale.residual,
     }
     save_checkpoint(path, state)
 
@@ -94,4 +127,5 @@ def load_policy_driver(path: Path) -> PolicyDriver:
             "version): train it again"
         )
     lanes = LaneChoice(policy.n_lane_actions, every, gap_rule)
-    return PolicyDriver(policy, features, ActionScale(low, high), lanes)
+    scale = ActionScale(low, high, str(state.get("residual", "")))  # "" in older files
+    return PolicyDriver(policy, features, scale, lanes)

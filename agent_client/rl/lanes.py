@@ -8,8 +8,10 @@ new leader and from the new follower (`secure_gap`). A lane decision is taken at
 every `every`-th decision only (the observation's `seq` says which), so that a lane change is a
 decision and not a request repeated every 0.1 s; in between only "keep" is allowed. The masks
 come from the observation alone, so a saved policy drives with the same rule it learned with.
-Near the end of a lane the ego must leave (protocol 1.6) the change towards its route is not
-masked by the gap rule: the simulator's own gap check judges it (`route_side`).
+Near the end of a lane the ego must leave (protocol 1.6) the change towards its route is the
+only choice, at every decision, unmasked by the gap rule: staying is what fails there, and the
+simulator's own gap check refuses the change into an unsafe gap (`route_side`), as it does IDM +
+MOBIL's; what the policy learns there is the speed that finds a gap.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ SAFE_DECELERATION = 4.5
 """m/s^2: the braking of the secure gap, a passenger car's comfortable maximum."""
 SAFE_STANDSTILL_M = 2.5
 """m: the gap left at standstill (a typical minimum gap)."""
-URGENT_S = 8.0
+URGENT_S = 12.0
 """s: this close to the end of a lane the ego must leave, its change towards the route is not
 masked by the gap rule (`route_side`)."""
 URGENT_MIN_SPEED = 10.0
@@ -88,11 +90,12 @@ class LaneChoice:
         if self.n_choices == 1:
             return KEEP_ONLY
         ego = obs.ego
-        free = ego.changing_lane == 0 and self.due(obs)
-        left = free and ego.lane + 1 < ego.lane_count
-        right = free and ego.lane > 0
+        free, due, route = ego.changing_lane == 0, self.due(obs), route_side(obs)
+        if free and route and 0 <= ego.lane + route < ego.lane_count:
+            return np.array([False, route == 1, route == -1])  # the route's change, or nothing
+        left = free and due and ego.lane + 1 < ego.lane_count
+        right = free and due and ego.lane > 0
         if self.gap_rule:
-            route = route_side(obs)
             left = left and (route == 1 or gap_is_safe(obs, 1))
             right = right and (route == -1 or gap_is_safe(obs, -1))
         return np.array([True, left, right])
@@ -100,13 +103,14 @@ class LaneChoice:
 
 def route_side(obs: Observation) -> int:
     """The side (1 left, -1 right) the ego must move to soon to stay on its route, 0 if none:
-    within `URGENT_S` seconds of the end of its lane (`Road`, protocol 1.6). There a change is
-    not masked by the gap rule: the simulator's own gap check, which accepts what it can, is
-    the judge, as for IDM + MOBIL."""
+    within `URGENT_S` seconds per lane to cross of the end of its lane (`Road`, protocol 1.6).
+    There the change that way is asked for at every decision, whatever the gap: the
+    simulator's own gap check, which accepts what it can, is the judge, as for IDM + MOBIL."""
     road = obs.road
     if road is None or not road.lanes_to_change:
         return 0
-    if road.lane_end > max(obs.ego.speed, URGENT_MIN_SPEED) * URGENT_S:
+    lanes = abs(road.lanes_to_change)
+    if road.lane_end > max(obs.ego.speed, URGENT_MIN_SPEED) * URGENT_S * lanes:
         return 0
     return 1 if road.lanes_to_change > 0 else -1
 

@@ -26,6 +26,7 @@ from typing import Any
 
 from agent_client.constants import JERK_COMFORT_LIMIT, KMH_PER_MS, PAPER_SPEED_LIMIT
 from agent_client.errors import UsageError
+from agent_client.rl.lanes import route_side, secure_gap
 from protocol.messages import (
     ROAD_RANGE,
     AppliedAction,
@@ -83,6 +84,11 @@ DIVISION_EPSILON = 1e-3
 """Floor of Eq. 6's denominator |(d - h_d v) Δv'| (m, times the dimensionless Δv')."""
 ROUTE_LANES = 3
 """Lanes to change that the route's shaping counts at most (`route_potential`)."""
+GAP_READY_SHARE = 0.5
+"""Share of the next lane's weight in the route's potential that an open gap beside the ego
+takes off (`route_potential`)."""
+GAP_READY_SLACK = 20.0
+"""m short of a secure gap at which a gap counts as not open at all (`gap_readiness`)."""
 
 
 # --------------------------------------------------------------------------- state flags
@@ -437,7 +443,8 @@ class SafeReward:
     """Share of the drive term lost at |jerk| >= 5.6 m/s^3 (quadratic below), in [0, 1]."""
     refused_weight: float = 0.1
     """Cost of a refused lane change: a too small gap (G), no lane on that side, or one already
-    under way (a policy that asks at every step for a change it cannot get pays for it)."""
+    under way (a policy that asks at every step for a change it cannot get pays for it); not
+    of one towards the route near the end of the lane, refused for the gap."""
     lane_change_weight: float = 0.01
     """Cost of starting a lane change (against dithering)."""
     collision_penalty: float = 20.0
@@ -495,7 +502,7 @@ class SafeReward:
         comfort = 1.0 - self.jerk_weight * min((jerk(prev, obs, dt) / JERK_LIMIT) ** 2, 1.0)
         lane = 0.0
         refused = obs.action.lane_change_refused
-        if refused and refused != SIMULATOR_DRIVES:
+        if refused and refused != SIMULATOR_DRIVES and not _trying_for_route(prev, obs):
             lane = self.refused_weight
         elif obs.events.lane_change_started:
             lane = self.lane_change_weight
@@ -546,14 +553,46 @@ class SafeReward:
         return max(-self.worst_step() / (1.0 - gamma), self.stop_penalty, self.lane_end_cost)
 
 
+def _trying_for_route(prev: Observation | None, obs: Observation) -> bool:
+    """A change towards the route near the end of the lane, refused for the gap: asking at
+    every decision there is how a gap is caught, not a fault (`agent_client.rl.lanes`)."""
+    return (
+        prev is not None
+        and obs.action.lane_change_refused == GAP_TOO_SMALL
+        and obs.action.requested_lane_change == route_side(prev) != 0
+    )
+
+
 def route_potential(obs: Observation) -> float:
     """Phi of the route's shaping, in [-`ROUTE_LANES`, 0]: minus the lanes the ego must still
-    cross, each weighted by how near the end of its lane is (0 at `ROAD_RANGE` or beyond)."""
+    cross, each weighted by how near the end of its lane is (0 at `ROAD_RANGE` or beyond), the
+    next one's weight lowered by up to `GAP_READY_SHARE` as the gap beside the ego on that side
+    opens (`gap_readiness`): what the ego's speed does to find a gap pays before the change."""
     road = obs.road
     if road is None or not road.lanes_to_change:
         return 0.0
     lanes = min(abs(road.lanes_to_change), ROUTE_LANES)
-    return -lanes * (1.0 - min(road.lane_end, ROAD_RANGE) / ROAD_RANGE)
+    near = 1.0 - min(road.lane_end, ROAD_RANGE) / ROAD_RANGE
+    ready = GAP_READY_SHARE * gap_readiness(obs, 1 if road.lanes_to_change > 0 else -1)
+    return -near * (lanes - ready)
+
+
+def gap_readiness(obs: Observation, direction: int) -> float:
+    """In [0, 1]: 1 when the gaps to the new leader and from the new follower on side
+    `direction` are at least a safe driver's secure gaps (`agent_client.rl.lanes.secure_gap`),
+    falling to 0 as the shorter falls `GAP_READY_SLACK` m short of its own."""
+    near, speed = obs.neighbours, obs.ego.speed
+    lead, lag = (
+        (near.left_leader, near.left_follower)
+        if direction > 0
+        else (near.right_leader, near.right_follower)
+    )
+    margins = [0.0]
+    if lead.present:
+        margins.append(lead.gap - secure_gap(speed, lead.speed))
+    if lag.present:
+        margins.append(lag.gap - secure_gap(lag.speed, speed))
+    return min(max(1.0 + min(margins) / GAP_READY_SLACK, 0.0), 1.0)
 
 
 # --------------------------------------------------------------------------- the ring's waves

@@ -124,7 +124,8 @@ class LocalCollector:
         us, lane_choices = self.choose(running)
         for slot, u, lane in zip(running, us, lane_choices, strict=True):
             command = LANE_COMMANDS[int(lane)]
-            self.envs[slot.env_index].send_command(self.scale.to_env(float(u)), command)
+            acceleration = self.scale.to_env(float(u), slot.obs)
+            self.envs[slot.env_index].send_command(acceleration, command)
             self._sent[slot.env_index] = (float(u), int(lane))
 
     def receive(self) -> Collected:

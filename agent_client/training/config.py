@@ -64,6 +64,11 @@ class TrainConfig:
     features: str = "auto"
     """Network inputs: cf, lc, road, or auto (on roads with several lanes road where the server
     reports the road ahead, protocol 1.6, else lc; cf on one lane)."""
+    residual: str = "auto"
+    """What the actor's acceleration is: none (the acceleration itself) or idm+mobil (a
+    correction of up to ±3 m/s² of IDM + MOBIL's acceleration, residual policy learning: the
+    policy starts as good as the reference and learns to do better); auto: idm+mobil where some
+    scenario's route makes the ego change lanes (a lane end or an exit), else none."""
     reference: str = "auto"
     """The driver the evaluations compare the policy with, on the same seeds (``as fast as``):
     a driver spec (idm, idm+mobil, idm:PARAMS.json, a policy file), or auto: idm on one lane,
@@ -97,7 +102,8 @@ class TrainConfig:
     only a baseline's driving: measured best on cf and cflc, docs/learner.md), idm (IDM +
     noise) or idm+mobil (with its lane changes, those a route needs included, + noise)."""
     pretrain_idm: bool = False
-    """Behaviour-clone the actor on IDM's actions before DDPG (the paper's §4.3.2 tip)."""
+    """Behaviour-clone the actor on IDM's actions before TD3 (the paper's §4.3.2 tip); where
+    lanes are learned on the reference's (IDM + MOBIL), its lane changes kept in the buffer."""
     pretrain_episodes: int = 5
     """IDM episodes collected for pre-training."""
     pretrain_epochs: int = 30
@@ -169,6 +175,7 @@ class TrainConfig:
             "features": ("auto", *FEATURE_SETS),
             "lane_change": ("auto", "yes", "no"),
             "warmup_policy": ("idm", "idm+mobil", "random"),
+            "residual": ("auto", "none", "idm+mobil"),
             "sampling": ("local", "ray"),
         }
         for name, valid in choices.items():
@@ -270,7 +277,7 @@ RECOMMENDED: dict[str, dict[str, Any]] = {
         LEARNER: {"deploy_tau": 0.001},
     },
 }
-"""Settings measured best for one scenario, on top of the defaults (`recommended`; docs/learner.md,
+"""Settings measured best for one scenario, on top of the defaults (`recommended`; docs/results.md,
 "Measured: learning car following on cf"): on cf, the safe reward's knee 0.1 s closer and a far
 leader costing part of the drive term (closing up pays), a slower average of the deployed actor,
 and after a failed evaluation a wait of its steps only. configs/cf.toml spells them out."""

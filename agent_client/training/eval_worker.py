@@ -313,6 +313,7 @@ def driver_message(driver: Driver) -> dict[str, Any]:
         "lane_phase_every": driver.features.lane_phase_every,
         "lanes": [driver.lanes.n_choices, driver.lanes.every, driver.lanes.gap_rule],
         "scale": [driver.scale.low, driver.scale.high],
+        "residual": driver.scale.residual,
     }
 
 
@@ -333,7 +334,8 @@ def driver_from_message(message: dict[str, Any]) -> Driver:
     n_choices, every, gap_rule = message["lanes"]
     low, high = message["scale"]
     lanes = LaneChoice(int(n_choices), int(every), bool(gap_rule))
-    return PolicyDriver(policy, features, ActionScale(float(low), float(high)), lanes)
+    scale = ActionScale(float(low), float(high), str(message.get("residual", "")))
+    return PolicyDriver(policy, features, scale, lanes)
 
 
 def _array(array: np.ndarray) -> dict[str, Any]:

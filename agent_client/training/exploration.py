@@ -54,14 +54,16 @@ class WarmupDriver:
         if self.policy == "idm+mobil":
             driver = self._mobil.setdefault(slot.env_index, IDMMobilDriver())
             acceleration, change = driver.act(slot.obs)
-            u = self.scale.to_policy(acceleration) + self.rng.normal(0.0, self.noise_sigma)
+            u = self.scale.to_policy(acceleration, slot.obs)
+            u += self.rng.normal(0.0, self.noise_sigma)
             lane = LANE_COMMANDS.index(change)
             if not slot.mask[lane] or self.rng.random() < WARMUP_LANE_PROBABILITY:
                 lane = int(self.rng.choice(possible))
             return float(np.clip(u, -1.0, 1.0)), lane
         if self.policy == "idm":
             acceleration, _ = self.idm.act(slot.obs)
-            u = self.scale.to_policy(acceleration) + self.rng.normal(0.0, self.noise_sigma)
+            u = self.scale.to_policy(acceleration, slot.obs)
+            u += self.rng.normal(0.0, self.noise_sigma)
             lane = 0
             if self.rng.random() < WARMUP_LANE_PROBABILITY:
                 lane = int(self.rng.choice(possible))

@@ -275,7 +275,7 @@ class MultiEgoCollector:
             for slot, u, lane in zip(
                 running.values(), us[first:last], lane_choices[first:last], strict=True
             ):
-                acceleration = self.scale.to_env(float(u))
+                acceleration = self.scale.to_env(float(u), slot.obs)
                 commands.append(Command(slot.ego_id, acceleration, LANE_COMMANDS[int(lane)]))
                 sent[slot.ego_id] = (float(u), int(lane))
             self.links[index].send_step(commands)

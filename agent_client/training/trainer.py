@@ -40,6 +40,7 @@ import torch
 from agent_client.defaults import PRETRAIN_SEED, RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.drivers.episode import run_episode
 from agent_client.drivers.idm import IDMDriver
+from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.drivers.policy import ActionScale, PolicyDriver, save_policy
 from agent_client.drivers.spec import load_driver
 from agent_client.envs.remote_env import RemoteEnv
@@ -55,7 +56,7 @@ from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_s
 from agent_client.evaluation.targets import FailureScreen, targets_met
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
-from agent_client.rl.lanes import LaneChoice
+from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
 from agent_client.rl.policy import Policy
 from agent_client.rl.replay import ReplayBuffer
 from agent_client.rl.rewards import TRAFFIC_REWARDS, q_upper_bound
@@ -92,6 +93,9 @@ if TYPE_CHECKING:
     from agent_client.training.ray_collect import RayCollector
 
 T = TypeVar("T")
+
+COMPILED_LOAD_NOTICE_S = 1.0
+"""A first update slower than this was the compiled update loading: said as such."""
 
 PROBE_STEPS = 300
 """Decisions of each scenario's first episode driven to see whether its lanes change."""
@@ -156,7 +160,7 @@ class Trainer:
         config = self.config
         self.env: RemoteEnv = self.vec.envs[0]
         """Where pre-training and inline evaluations run."""
-        multi_lane = self._multi_lane()
+        multi_lane, routed = self._lanes_and_routes()
         self._one_lane = not multi_lane
         """On one lane nobody passes the leader-at-entry: its ceiling bounds any driver's speed."""
         features = config.features
@@ -167,7 +171,8 @@ class Trainer:
         every = config.lane_decision_every if lane_change else 1
         self.features = FeatureMap(features, lane_phase_every=every)
         self.lanes = LaneChoice(3 if lane_change else 1, every, config.lane_gap_rule)
-        self.scale = ActionScale.from_schema(self.env.welcome.action)
+        residual = config.residual if config.residual != "auto" else "idm+mobil" if routed else ""
+        self.scale = ActionScale.from_schema(self.env.welcome.action, residual.replace("none", ""))
         n_envs *= config.egos  # one exploration noise process per ego slot
         self.agent = Agent(
             self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs
@@ -244,23 +249,25 @@ class Trainer:
         ``context["collect_at"]``; IDM's baseline before the first policy evaluation)."""
         self._started = time.monotonic()
 
-    def _multi_lane(self) -> bool:
-        """Whether lanes can be changed on some scenario: a road of several lanes somewhere
-        within the first `PROBE_STEPS` decisions of an episode of each (an on-ramp's lanes
-        start after the ramp), driven by IDM."""
-        env, seed, idm = self.env, self.config.seed, IDMDriver()
+    def _lanes_and_routes(self) -> tuple[bool, bool]:
+        """Whether lanes can be changed on some scenario (a road of several lanes), and
+        whether some route makes the ego change them (`Road.lanes_to_change`): seen within the
+        first `PROBE_STEPS` decisions of an episode of each (an on-ramp's lanes start after the
+        ramp), driven by IDM + MOBIL."""
+        env, seed = self.env, self.config.seed
+        lanes = routed = False
         for index in range(len(env.scenarios)):
             probe = seed + (index - seed) % len(env.scenarios)  # a seed of scenario `index`
             _, info = env.reset(seed=probe)
-            obs = info["observation"]
+            obs, driver = info["observation"], IDMMobilDriver()
             for _ in range(PROBE_STEPS):
-                if obs.ego.lane_count > 1 or (obs.road and obs.road.lanes_to_change):
-                    return True
-                if obs.terminated or obs.truncated:
+                lanes = lanes or obs.ego.lane_count > 1
+                routed = routed or bool(obs.road and obs.road.lanes_to_change)
+                if routed or obs.terminated or obs.truncated:
                     break
-                env.send_command(*idm.act(obs))
+                env.send_command(*driver.act(obs))
                 obs, _ = env.receive_observation()
-        return False
+        return lanes or routed, routed
 
     # ----------------------------------------------------------------------- public
 
@@ -358,14 +365,14 @@ class Trainer:
         if due:
             first = not self.progress.updates
             if first:  # a wait of its own, said as such: no iteration after it pays it
-                self.say(
-                    f"learning begins at {self.progress.global_step} env steps: loading the "
-                    "compiled update (compiled the first time on a machine, ~15 s; then ~4 s)"
-                )
+                self.say(f"learning begins at {self.progress.global_step} env steps")
             batches = [self.buffer.sample(batch_size) for _ in range(due)]
             self._losses += [metrics["critic_loss"] for metrics in agent.update_many(batches)]
-            if first:
-                self.say(f"the compiled update is ready ({clock() - sent:.1f} s)")
+            if first and clock() - sent > COMPILED_LOAD_NOTICE_S:
+                self.say(
+                    f"the compiled update took {clock() - sent:.1f} s to load (once per process; "
+                    "the first time on a machine it is compiled, ~15 s, then cached)"
+                )
         self.progress.updates += due
         self._updates_due -= due
         updated = clock()
@@ -549,28 +556,32 @@ class Trainer:
         }
 
     def _pretrain(self) -> None:
-        """Behaviour cloning on IDM's actions, then critic-only updates on that data."""
+        """Behaviour cloning on IDM's actions (IDM + MOBIL's where lanes are learned, its lane
+        changes kept in the buffer), then critic-only updates on that data."""
         cfg = self.config
-        self.say(f"pre-training: {cfg.pretrain_episodes} IDM episodes through the bridge")
+        demo = self.reference if self.lanes.n_choices > 1 else self.idm
+        name = getattr(demo, "name", "reference")
+        self.say(f"pre-training: {cfg.pretrain_episodes} {name} episodes through the bridge")
         states: list[np.ndarray] = []
         targets: list[float] = []
 
         def remember(before: Observation, action: Any, reward: float, after: Observation) -> None:
-            x, u = self.features(before), self.scale.to_policy(action[0])
+            x, u = self.features(before), self.scale.to_policy(action[0], before)
             mask, next_mask = self.lanes.mask(before), self.lanes.mask(after)
-            self.buffer.add(x, u, 0, reward, self.features(after), after.terminated, mask,
-                            next_mask)  # fmt: skip
+            lane = LANE_COMMANDS.index(action[1]) if self.lanes.n_choices > 1 else 0
+            self.buffer.add(x, u, lane if mask[lane] else 0, reward, self.features(after),
+                            after.terminated, mask, next_mask)  # fmt: skip
             states.append(x)
             targets.append(u)
 
         for index in range(cfg.pretrain_episodes):
             seed = PRETRAIN_SEED + 1000 * cfg.seed + index
-            run_episode(self.env, self.idm, seed, index, on_step=remember)
+            run_episode(self.env, demo, seed, index, on_step=remember)
         self.collector.drop_episode(0)  # the first server's training episode was replaced
         loss = self.agent.behaviour_clone(np.stack(states), np.array(targets), cfg.pretrain_epochs)
         for _ in range(len(states)):
             self.agent.update(self.buffer.sample(cfg.learner.batch_size), actor=False)
-        self.say(f"pre-training: actor fitted to {len(states)} IDM actions (MSE {loss:.4f})")
+        self.say(f"pre-training: actor fitted to {len(states)} {name} actions (MSE {loss:.4f})")
 
     # ----------------------------------------------------------------------- evaluation
 

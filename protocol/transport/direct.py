@@ -1,7 +1,7 @@
 """The direct transport: the same msgpack messages over a plain TCP socket, without ZeroMQ.
 
 ZeroMQ moves every message through an I/O thread on each side: four thread hand-offs per round
-trip, which on a small VM cost more than a SUMO step (README, "Bridge performance").
+trip, which on a small VM cost more than a SUMO step (docs/results.md, "Bridge performance").
 ``direct://HOST:PORT`` is the fast path for a learner and a simulator on one machine:
 
 * the client opens a TCP connection and sends a preamble: ``AVB`` + the transport version byte

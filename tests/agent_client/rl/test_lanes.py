@@ -104,12 +104,17 @@ def test_the_gap_rule_masks_changes_into_gaps_visibly_too_small(
     assert LaneChoice(3).mask(obs).tolist() == [True, True, True]  # without it: the road only
 
 
-@pytest.mark.parametrize(("lane_end", "unmasked"), [(150.0, True), (170.0, False)])
-def test_near_the_lane_end_the_change_towards_the_route_is_left_to_the_simulator(
-    lane_end: float, unmasked: bool
+@pytest.mark.parametrize(
+    ("lane_end", "expected"),
+    [(230.0, [False, True, False]), (250.0, [True, False, False])],
+)
+def test_near_the_lane_end_the_change_towards_the_route_is_the_choice(
+    lane_end: float, expected: list[bool]
 ) -> None:
-    """Within 8 s of the end (160 m at 20 m/s) the gap rule no longer masks the route's side."""
+    """Within 12 s of the end (240 m at 20 m/s) the route's change is asked for at every
+    decision, whatever the gap (the simulator refuses an unsafe one); farther it is masked as
+    any other."""
     merging = Road(lane_end, 1, ROAD_RANGE, 0.0)
     blocked = sides(left_leader=near(10.0, 20.0), right_leader=near(10.0, 20.0))
-    obs = make_observation(ego=ego(1), neighbours=blocked, road=merging)
-    assert LaneChoice(3, gap_rule=True).mask(obs).tolist() == [True, unmasked, False]
+    obs = make_observation(seq=3, ego=ego(1), neighbours=blocked, road=merging)
+    assert LaneChoice(3, every=10, gap_rule=True).mask(obs).tolist() == expected

@@ -16,6 +16,7 @@ from agent_client.rl.rewards import (
     RewardFn,
     SafeReward,
     flags,
+    gap_readiness,
     jerk,
     make_reward,
     max_reward,
@@ -507,11 +508,23 @@ def test_a_lane_change_towards_the_route_earns_what_staying_would_cost() -> None
     before = on_road(Road(200.0, 1, ROAD_RANGE, 0.0))
     changed = on_road(Road(ROAD_RANGE, 0, 0.0, 190.0))
     stayed = on_road(Road(198.0, 1, ROAD_RANGE, 0.0))
-    # the same drive term: the difference is the potential's, w (0 - (-(1 - 198 / 1000)))
-    assert safe(before, changed, DT) - safe(before, stayed, DT) == pytest.approx(2.0 * 0.802)
-    assert route_potential(before) == pytest.approx(-0.8)
+    # the same drive term: the difference is the potential's, w (0 - (-(1 - 198 / 1000))) with
+    # the lane beside empty, an open gap: half the lane's weight already off
+    assert safe(before, changed, DT) - safe(before, stayed, DT) == pytest.approx(2.0 * 0.401)
+    assert route_potential(before) == pytest.approx(-0.4)
     assert route_potential(changed) == 0.0
     assert safe(before, stayed, DT) < safe(before, before, DT) + 1e-9  # drawing near costs
+
+
+def test_opening_a_gap_beside_pays_before_the_change() -> None:
+    merging = Road(100.0, 1, ROAD_RANGE, 0.0)
+    beside = replace(make_obs(speed=20.0), road=merging)
+    blocked = replace(
+        beside,
+        neighbours=replace(beside.neighbours, left_leader=Neighbour(True, 2.5, 3.2, 20.0, "l")),
+    )  # 20 m short of the secure 22.5 m: the gap counts as closed
+    assert gap_readiness(blocked, 1) == 0.0 and gap_readiness(beside, 1) == 1.0
+    assert route_potential(beside) - route_potential(blocked) == pytest.approx(0.9 * 0.5)
 
 
 def test_the_route_shaping_sums_to_the_potentials_difference() -> None:
