@@ -19,13 +19,17 @@ from agent_client.defaults import DEFAULT_SCENARIO
 
 def add_parser(commands: Commands) -> None:
     drive = commands.add_parser(
-        "drive", help="drive episodes with a driver (idm or a trained policy) and summarise them"
+        "drive",
+        help="drive episodes with a driver (idm, idm+mobil, sumo or a trained policy) and "
+        "summarise them",
     )
     add_connection_arguments(drive)
     drive.add_argument(
         "--policy",
         default="idm",
-        help="idm, idm:PARAMS.json, or a trained policy file (runs/NAME/policy.pt)",
+        help="idm, idm+mobil (with lane changes: a route's merge or exit), sumo (the "
+        "simulator's own driver), idm:PARAMS.json, or a trained policy file "
+        "(runs/NAME/policy.pt)",
     )
     drive.add_argument("--episodes", type=int, default=5, help="number of episodes (default 5)")
     drive.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")

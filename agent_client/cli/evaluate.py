@@ -31,7 +31,9 @@ def add_parser(commands: Commands) -> None:
     )
     add_connection_arguments(evaluate)
     evaluate.add_argument(
-        "--policy", required=True, help="runs/NAME/policy.pt, idm or idm:PARAMS.json"
+        "--policy",
+        required=True,
+        help="runs/NAME/policy.pt, idm, idm+mobil, sumo or idm:PARAMS.json",
     )
     evaluate.add_argument(
         "--baseline",

@@ -29,7 +29,7 @@ import math
 from dataclasses import asdict, dataclass
 
 from agent_client.drivers.idm import IDMParams, idm_acceleration
-from agent_client.rl.lanes import secure_gap
+from agent_client.rl.lanes import gap_is_safe, secure_gap
 from protocol.messages import ROAD_RANGE, Neighbour, Observation, Road, road_ahead
 
 VEHICLE_LENGTH = 5.0
@@ -38,10 +38,20 @@ FALL_BACK = 4.0
 """m/s below the target lane's speed at which the ego lets a vehicle there pass."""
 SPEED_GAIN = 0.5
 """1/s: how fast the ego takes up the target lane's speed (a 2 s time constant)."""
-JERK_STEP = 0.5
-"""m/s²: the most the acceleration changes from one decision to the next, unless braking at
-`MobilParams.stop_deceleration` or harder (5 m/s³ at 0.1 s decisions: under the 5.6 m/s³ a
-passenger notices, docs/evaluation.md)."""
+JERK_LIMIT = 5.0
+"""m/s³: how fast the acceleration changes from one decision to the next, unless braking at
+`MobilParams.stop_deceleration` or harder: under the 5.6 m/s³ a passenger notices
+(docs/evaluation.md)."""
+DECISION_INTERVAL = 0.1
+"""s: the decision interval assumed until two observations have shown it."""
+
+
+def jerk_limited(wanted: float, previous: float, interval: float) -> float:
+    """`wanted` changed from `previous` no faster than `JERK_LIMIT` over `interval` seconds."""
+    step = JERK_LIMIT * interval
+    return min(max(wanted, previous - step), previous + step)
+
+
 ALIGN_GAIN = 0.5
 """1/s: the speed offset per metre the ego is off the middle of the gap it moves into."""
 
@@ -87,13 +97,19 @@ class IDMMobilDriver:
         self.others = IDMParams()
         """The model of the other vehicles, whose gains and braking MOBIL weighs."""
         self._next_decision = -math.inf
+        self._last_time = -math.inf
+        self.interval = DECISION_INTERVAL
+        """Seconds between the last two observations: the jerk limit's time step."""
 
     def act(self, obs: Observation) -> tuple[float, int]:
         """Acceleration (m/s²) and lane change (-1, 0, +1) for one observation."""
         if obs.seq == 0:
             self._next_decision = -math.inf
+        elif obs.time > self._last_time:
+            self.interval = obs.time - self._last_time
+        self._last_time = obs.time
         road = road_ahead(obs)
-        acceleration = self.acceleration(obs)
+        acceleration = self.acceleration(obs, self.interval)
         must = _sign(road.lanes_to_change)
         if obs.ego.changing_lane:
             return acceleration, 0
@@ -106,23 +122,22 @@ class IDMMobilDriver:
         self._next_decision = obs.time + self.mobil.decision_interval - 1e-9
         return acceleration, self._discretionary(obs, road, must)
 
-    def acceleration(self, obs: Observation) -> float:
-        """The acceleration alone (m/s²), which keeps no state: IDM behind the leader, before
-        the end of a lane the route must leave, and into the gap beside it where the change
-        the route needs cannot be made yet (what a policy trained on top of this driver
-        corrects, `agent_client.drivers.policy.ActionScale`)."""
+    def acceleration(self, obs: Observation, interval: float = DECISION_INTERVAL) -> float:
+        """The acceleration alone (m/s²) for decisions every `interval` seconds, which keeps no
+        state: IDM behind the leader, before the end of a lane the route must leave, and into
+        the gap beside it where the change the route needs cannot be made yet (what a policy
+        trained on top of this driver corrects, `agent_client.drivers.policy.ActionScale`)."""
         road = road_ahead(obs)
         ego = obs.ego
         must = _sign(road.lanes_to_change)
         acceleration = self._idm(ego.speed, ego.speed_limit, obs.neighbours.leader)
         if must:
             acceleration = min(acceleration, self._stop_before(road.lane_end, ego.speed))
-        if not ego.changing_lane and self._strategic(obs, road) and not self._safe(obs, must):
+        if not ego.changing_lane and self._strategic(obs, road) and not self._fits(obs, must):
             acceleration = min(acceleration, self._fit_in(obs, must))
         if acceleration <= -self.mobil.stop_deceleration:
             return acceleration  # braking hard: at once
-        previous = ego.acceleration  # else no faster change than a comfortable jerk allows
-        return min(max(acceleration, previous - JERK_STEP), previous + JERK_STEP)
+        return jerk_limited(acceleration, ego.acceleration, interval)  # else a comfortable jerk
 
     def _strategic(self, obs: Observation, road: Road) -> bool:
         """The route needs a change within the look-ahead."""
@@ -194,6 +209,12 @@ class IDMMobilDriver:
             if gain > self.mobil.threshold + bias and gain - bias > best_gain:
                 best, best_gain = direction, gain - bias
         return best
+
+    def _fits(self, obs: Observation, direction: int) -> bool:
+        """The gap beside is safe by MOBIL's criterion and by a secure gap each side (what a
+        simulator's own gap check asks; SUMO refuses a gap MOBIL accepts when the ego sits too
+        close to the new leader, and the ego then has to move into the gap's middle)."""
+        return self._safe(obs, direction) and gap_is_safe(obs, direction)
 
     def _safe(self, obs: Observation, direction: int) -> bool:
         """MOBIL's safety criterion: neither the new follower nor the ego brakes harder than

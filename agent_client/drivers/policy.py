@@ -14,16 +14,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from agent_client.drivers.mobil import IDMMobilDriver
+from agent_client.drivers.mobil import DECISION_INTERVAL, IDMMobilDriver, MobilParams, jerk_limited
 from agent_client.rl.features import FeatureMap, FeatureMismatch
 from agent_client.rl.greedy import GreedyPolicy
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
 from protocol.messages import ActionSchema, Observation
 
-RESIDUAL_RANGE = 3.0
+RESIDUAL_RANGE = 2.0
 """m/s²: how far a residual policy's acceleration may stray from its reference's (±)."""
 
-RESIDUAL_BASES: dict[str, Callable[[Observation], float]] = {
+STOP_DECELERATION = MobilParams().stop_deceleration
+"""m/s²: harder braking than this is applied at once, as the reference applies it."""
+
+RESIDUAL_BASES: dict[str, Callable[[Observation, float], float]] = {
     "idm+mobil": IDMMobilDriver().acceleration,
 }
 """The drivers a policy can be trained on top of: their acceleration, which keeps no state."""
@@ -34,12 +37,16 @@ class ActionScale:
     """Maps the actor's [-1, 1] onto an acceleration (m/s^2): the server's bounds, or with
     `residual` a correction of up to ±`RESIDUAL_RANGE` of a reference driver's acceleration
     (residual policy learning, Silver et al. 2018, Johannink et al. 2019: the policy starts as
-    good as the reference, IDM + MOBIL on roads where lanes end, and learns what to do better)."""
+    good as the reference, IDM + MOBIL on roads where lanes end, and learns what to do better),
+    changed from one decision to the next no faster than the reference's own jerk limit unless
+    braking hard."""
 
     low: float
     high: float
     residual: str = ""
     """"" (the acceleration itself), or a key of `RESIDUAL_BASES`."""
+    interval: float = DECISION_INTERVAL
+    """Seconds per decision (with `residual`: the jerk limit's time step)."""
 
     def __post_init__(self) -> None:
         if self.residual and self.residual not in RESIDUAL_BASES:
@@ -48,22 +55,27 @@ class ActionScale:
             )
 
     @classmethod
-    def from_schema(cls, schema: ActionSchema, residual: str = "") -> ActionScale:
-        return cls(schema.acceleration_min, schema.acceleration_max, residual)
+    def from_schema(
+        cls, schema: ActionSchema, residual: str = "", interval: float = DECISION_INTERVAL
+    ) -> ActionScale:
+        return cls(schema.acceleration_min, schema.acceleration_max, residual, interval)
 
     def to_env(self, u: float, obs: Observation | None = None) -> float:
         """The acceleration for the actor's `u` in the state `obs` (needed with `residual`)."""
         if not self.residual:
             return self.low + (u + 1.0) * 0.5 * (self.high - self.low)
         assert obs is not None, "a residual policy's action depends on the observation"
-        base = RESIDUAL_BASES[self.residual](obs)
-        return min(max(base + RESIDUAL_RANGE * u, self.low), self.high)
+        wanted = RESIDUAL_BASES[self.residual](obs, self.interval) + RESIDUAL_RANGE * u
+        if wanted > -STOP_DECELERATION:  # as the reference's own: a comfortable jerk at most
+            wanted = jerk_limited(wanted, obs.ego.acceleration, self.interval)
+        return min(max(wanted, self.low), self.high)
 
     def to_policy(self, acceleration: float, obs: Observation | None = None) -> float:
         """The actor's `u` that gives `acceleration` in the state `obs` (clipped to [-1, 1])."""
         if self.residual:
             assert obs is not None, "a residual policy's action depends on the observation"
-            u = (acceleration - RESIDUAL_BASES[self.residual](obs)) / RESIDUAL_RANGE
+            base = RESIDUAL_BASES[self.residual](obs, self.interval)
+            u = (acceleration - base) / RESIDUAL_RANGE
         else:
             u = 2.0 * (acceleration - self.low) / (self.high - self.low) - 1.0
         return min(1.0, max(-1.0, u))
@@ -105,6 +117,7 @@ def save_policy(
         "lane_gap_rule": lanes.gap_rule,
         "acceleration_bounds": [scale.low, scale.high],
         "residual": scale.residual,
+        "decision_interval": scale.interval,
     }
     save_checkpoint(path, state)
 
@@ -127,5 +140,7 @@ def load_policy_driver(path: Path) -> PolicyDriver:
             "version): train it again"
         )
     lanes = LaneChoice(policy.n_lane_actions, every, gap_rule)
-    scale = ActionScale(low, high, str(state.get("residual", "")))  # "" in older files
+    residual = str(state.get("residual", ""))  # "" in older files
+    interval = float(state.get("decision_interval", DECISION_INTERVAL))
+    scale = ActionScale(low, high, residual, interval)
     return PolicyDriver(policy, features, scale, lanes)

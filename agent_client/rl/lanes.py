@@ -11,7 +11,10 @@ come from the observation alone, so a saved policy drives with the same rule it 
 Near the end of a lane the ego must leave (protocol 1.6) the change towards its route is the
 only choice, at every decision, unmasked by the gap rule: staying is what fails there, and the
 simulator's own gap check refuses the change into an unsafe gap (`route_side`), as it does IDM +
-MOBIL's; what the policy learns there is the speed that finds a gap.
+MOBIL's; what the policy learns there is the speed that finds a gap. Further back, a change away
+from the route is masked where it would leave less than `ROUTE_KEEP_S` per lane to come back
+before the lane it moves to ends (`leaves_route`): a policy does not leave the exit lane 400 m
+before the exit, whatever its critic has learned so far.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.messages import Observation
+from protocol.messages import ROAD_RANGE, Observation
 
 LANE_COMMANDS = (0, 1, -1)
 """Lane choice index -> lane-change command: keep, left, right."""
@@ -35,6 +38,9 @@ SAFE_STANDSTILL_M = 2.5
 URGENT_S = 12.0
 """s: this close to the end of a lane the ego must leave, its change towards the route is not
 masked by the gap rule (`route_side`)."""
+ROUTE_KEEP_S = 2 * URGENT_S
+"""s per lane to cross: a change away from the route that leaves less than this before the
+lane it moves to ends is masked (`leaves_route`)."""
 URGENT_MIN_SPEED = 10.0
 """m/s: the speed `URGENT_S` counts with when slower (a standing ego still sees its lane end)."""
 
@@ -93,8 +99,8 @@ class LaneChoice:
         free, due, route = ego.changing_lane == 0, self.due(obs), route_side(obs)
         if free and route and 0 <= ego.lane + route < ego.lane_count:
             return np.array([False, route == 1, route == -1])  # the route's change, or nothing
-        left = free and due and ego.lane + 1 < ego.lane_count
-        right = free and due and ego.lane > 0
+        left = free and due and ego.lane + 1 < ego.lane_count and not leaves_route(obs, 1)
+        right = free and due and ego.lane > 0 and not leaves_route(obs, -1)
         if self.gap_rule:
             left = left and (route == 1 or gap_is_safe(obs, 1))
             right = right and (route == -1 or gap_is_safe(obs, -1))
@@ -113,6 +119,20 @@ def route_side(obs: Observation) -> int:
     if road.lane_end > max(obs.ego.speed, URGENT_MIN_SPEED) * URGENT_S * lanes:
         return 0
     return 1 if road.lanes_to_change > 0 else -1
+
+
+def leaves_route(obs: Observation, direction: int) -> bool:
+    """Whether a change to `direction` (1 left, -1 right) moves away from the route where the
+    lane it moves to ends within `ROUTE_KEEP_S` seconds per lane then to cross (`Road`,
+    protocol 1.6; a lane beside that leads on along the route is never such a change)."""
+    road = obs.road
+    if road is None:
+        return False
+    lane_end = road.left_lane_end if direction > 0 else road.right_lane_end
+    lanes_after = abs(road.lanes_to_change - direction)
+    if lane_end >= ROAD_RANGE or lanes_after <= abs(road.lanes_to_change):
+        return False
+    return lane_end <= max(obs.ego.speed, URGENT_MIN_SPEED) * ROUTE_KEEP_S * lanes_after
 
 
 def lane_phase(seq: int, every: int) -> float:

@@ -350,9 +350,11 @@ class Agent:
             return dict(zip(METRICS, values, strict=True))
         return _critic_metrics(values)
 
-    def update_many(self, batches: list[Batch]) -> list[dict[str, float]]:
+    def update_many(self, batches: list[Batch], actor: bool = True) -> list[dict[str, float]]:
         """`update` for each batch in turn; TD3's critic-then-delayed pairs run as one compiled
         call, which saves the per-call overhead of the second."""
+        if not actor:
+            return [self.update(batch, actor=False) for batch in batches]
         metrics: list[dict[str, float]] = []
         index = 0
         while index < len(batches):

@@ -66,9 +66,13 @@ class TrainConfig:
     reports the road ahead, protocol 1.6, else lc; cf on one lane)."""
     residual: str = "auto"
     """What the actor's acceleration is: none (the acceleration itself) or idm+mobil (a
-    correction of up to ±3 m/s² of IDM + MOBIL's acceleration, residual policy learning: the
+    correction of up to ±2 m/s² of IDM + MOBIL's acceleration, residual policy learning: the
     policy starts as good as the reference and learns to do better); auto: idm+mobil where some
     scenario's route makes the ego change lanes (a lane end or an exit), else none."""
+    residual_burn_in: int = 20_000
+    """Critic updates before a residual policy's actor learns (the burn-in of Silver et al.
+    2018: the critic first learns the values of the reference's driving, so that the actor's
+    first gradients, on an untrained critic, do not undo it)."""
     reference: str = "auto"
     """The driver the evaluations compare the policy with, on the same seeds (``as fast as``):
     a driver spec (idm, idm+mobil, idm:PARAMS.json, a policy file), or auto: idm on one lane,
@@ -97,10 +101,11 @@ class TrainConfig:
     server's simulation with the one shared policy, every ego's steps feeding the one replay
     buffer, one training episode per ego's drive (docs/learner.md, "Many egos: one shared
     policy"); evaluations stay one-ego. 1: one ego per server, as before."""
-    warmup_policy: str = "random"
+    warmup_policy: str = "auto"
     """Actions before learning starts: random (uniform; the critic sees stops and crashes, not
     only a baseline's driving: measured best on cf and cflc, docs/learner.md), idm (IDM +
-    noise) or idm+mobil (with its lane changes, those a route needs included, + noise)."""
+    noise), idm+mobil (with its lane changes, those a route needs included, + noise; a residual
+    policy's zero plus noise), or auto: idm+mobil for a residual policy, else random."""
     pretrain_idm: bool = False
     """Behaviour-clone the actor on IDM's actions before TD3 (the paper's §4.3.2 tip); where
     lanes are learned on the reference's (IDM + MOBIL), its lane changes kept in the buffer."""
@@ -174,7 +179,7 @@ class TrainConfig:
             "reward": tuple(REWARDS),
             "features": ("auto", *FEATURE_SETS),
             "lane_change": ("auto", "yes", "no"),
-            "warmup_policy": ("idm", "idm+mobil", "random"),
+            "warmup_policy": ("auto", "idm", "idm+mobil", "random"),
             "residual": ("auto", "none", "idm+mobil"),
             "sampling": ("local", "ray"),
         }

@@ -314,6 +314,7 @@ def driver_message(driver: Driver) -> dict[str, Any]:
         "lanes": [driver.lanes.n_choices, driver.lanes.every, driver.lanes.gap_rule],
         "scale": [driver.scale.low, driver.scale.high],
         "residual": driver.scale.residual,
+        "interval": driver.scale.interval,
     }
 
 
@@ -334,7 +335,8 @@ def driver_from_message(message: dict[str, Any]) -> Driver:
     n_choices, every, gap_rule = message["lanes"]
     low, high = message["scale"]
     lanes = LaneChoice(int(n_choices), int(every), bool(gap_rule))
-    scale = ActionScale(float(low), float(high), str(message.get("residual", "")))
+    residual, interval = str(message["residual"]), float(message["interval"])
+    scale = ActionScale(float(low), float(high), residual, interval)
     return PolicyDriver(policy, features, scale, lanes)
 
 

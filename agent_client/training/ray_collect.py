@@ -206,6 +206,8 @@ def ray_collector(
     lanes: LaneChoice,
     reset_options: Mapping[str, OptionValue],
     *,
+    residual: str,
+    warmup_policy: str,
     policy_state: Callable[[], dict[str, Any]],
     global_step: Callable[[], int],
     lane_epsilon: Callable[[], float],
@@ -236,10 +238,11 @@ def ray_collector(
         noise_sigma=learner.noise_sigma,
         noise_theta=learner.noise_theta,
         noise_dt=learner.noise_dt,
-        warmup_policy=config.warmup_policy,
+        warmup_policy=warmup_policy,
         seed=config.seed,
         timeout_s=env.timeout_s,
         retry_for_s=retry_for_s,
+        residual=residual,
     )
 
     def settings() -> Settings:  # the schedule of `Trainer._choose`

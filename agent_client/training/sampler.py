@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from agent_client.drivers.mobil import DECISION_INTERVAL
 from agent_client.drivers.policy import ActionScale
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import ServerError, ServerUnavailable
@@ -59,6 +60,8 @@ class WorkerSpec:
     seed: int
     timeout_s: float
     retry_for_s: float = 0.0
+    residual: str = ""
+    """The trainer's `ActionScale.residual`: what the actor's output corrects."""
 
 
 @dataclass(frozen=True)
@@ -144,7 +147,8 @@ class SamplingWorker:
         )  # fmt: skip
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
         lanes = LaneChoice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule)
-        scale = ActionScale.from_schema(self.env.welcome.action)
+        interval = float(spec.options.get("decision_interval", DECISION_INTERVAL))
+        scale = ActionScale.from_schema(self.env.welcome.action, spec.residual, interval)
         self.exploration = Exploration(spec, scale, spec.seed + 7919 * (index + 1))
         self._seeds = (first_seed + index + stride * k for k in range(2**31))
         self.local = LocalCollector(

@@ -53,7 +53,7 @@ from agent_client.errors import (
     UsageError,
 )
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_summary
-from agent_client.evaluation.targets import FailureScreen, targets_met
+from agent_client.evaluation.targets import FailureScreen, ceiling_target, targets_met
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
@@ -172,7 +172,9 @@ class Trainer:
         self.features = FeatureMap(features, lane_phase_every=every)
         self.lanes = LaneChoice(3 if lane_change else 1, every, config.lane_gap_rule)
         residual = config.residual if config.residual != "auto" else "idm+mobil" if routed else ""
-        self.scale = ActionScale.from_schema(self.env.welcome.action, residual.replace("none", ""))
+        self.scale = ActionScale.from_schema(
+            self.env.welcome.action, residual.replace("none", ""), config.decision_interval
+        )
         n_envs *= config.egos  # one exploration noise process per ego slot
         self.agent = Agent(
             self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs
@@ -189,9 +191,10 @@ class Trainer:
         """The driver evaluations compare the policy with (`TrainConfig.reference`)."""
         self.reference_figures: dict[str, dict[str, float]] = {}
         """The reference's figures on each scenario's evaluation seeds."""
-        self.warmup = WarmupDriver(
-            config.warmup_policy, self.scale, config.learner.noise_sigma, self.rng
-        )
+        warmup = config.warmup_policy
+        if warmup == "auto":
+            warmup = "idm+mobil" if self.scale.residual else "random"
+        self.warmup = WarmupDriver(warmup, self.scale, config.learner.noise_sigma, self.rng)
         self.progress = Progress()
         self.profile = Profile()
         self.q_bound = q_upper_bound(config.reward, config.learner.gamma, **config.reward_params)
@@ -218,6 +221,7 @@ class Trainer:
 
             self.collector = ray_collector(
                 config, self.vec, self.features, self.lanes, reset_options,
+                residual=self.scale.residual, warmup_policy=self.warmup.policy,
                 policy_state=self.agent.policy_state_dict,
                 global_step=lambda: self.progress.global_step,
                 lane_epsilon=lambda: self.agent.lane_epsilon, next_seed=self._next_seed,
@@ -367,7 +371,8 @@ class Trainer:
             if first:  # a wait of its own, said as such: no iteration after it pays it
                 self.say(f"learning begins at {self.progress.global_step} env steps")
             batches = [self.buffer.sample(batch_size) for _ in range(due)]
-            self._losses += [metrics["critic_loss"] for metrics in agent.update_many(batches)]
+            actor = not self.scale.residual or self.progress.updates >= self.config.residual_burn_in
+            self._losses += [m["critic_loss"] for m in agent.update_many(batches, actor)]
             if first and clock() - sent > COMPILED_LOAD_NOTICE_S:
                 self.say(
                     f"the compiled update took {clock() - sent:.1f} s to load (once per process; "
@@ -675,7 +680,10 @@ class Trainer:
         max_steps = math.ceil(limit / interval) + 10 if limit and interval else None
         ceilings = self.idm_ceilings
         bounds = ceilings if self._one_lane and ceilings and len(ceilings) == seeds else None
-        return FailureScreen(seeds, self.idm_eval["average_speed"], max_steps, bounds, routed)
+        return FailureScreen(
+            seeds, self.idm_eval["average_speed"], max_steps, bounds, routed,
+            ceiling_target(self.idm_eval),
+        )  # fmt: skip
 
     def _background(self) -> bool:
         """Whether evaluations run in the background (on evaluation servers of their own)."""

@@ -7,13 +7,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent_client.drivers.policy import ActionScale, load_policy_driver, save_policy
+from agent_client.drivers.mobil import JERK_LIMIT, IDMMobilDriver
+from agent_client.drivers.policy import (
+    RESIDUAL_RANGE,
+    ActionScale,
+    load_policy_driver,
+    save_policy,
+)
 from agent_client.drivers.spec import training_settings
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap, FeatureMismatch
 from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.td3 import Agent, TD3Config
-from protocol.messages import ActionSchema, Ego
+from protocol.messages import ActionSchema, Ego, Neighbour, Neighbours
 from tests.protocol.test_codec import make_observation
 
 
@@ -25,6 +31,40 @@ def test_action_scale_maps_tanh_onto_asymmetric_bounds() -> None:
     for a in (-6.0, -2.0, 0.0, 2.5, 3.0):
         assert scale.to_env(scale.to_policy(a)) == pytest.approx(a)
     assert scale.to_policy(10.0) == 1.0
+
+
+def free_road() -> Neighbours:
+    absent = Neighbour(False, 200.0, 0.0, 0.0)
+    return Neighbours(absent, absent, absent, absent, absent, absent)
+
+
+def test_a_residual_action_corrects_the_reference_within_a_comfortable_jerk() -> None:
+    scale = ActionScale(-6.0, 3.0, residual="idm+mobil")
+    obs = make_observation(ego=Ego(20.0, 0.2, 0, 1, 120.0, 25.0), neighbours=free_road())
+    reference = IDMMobilDriver().acceleration(obs)
+    assert scale.to_env(0.0, obs) == pytest.approx(reference)
+    assert scale.to_env(1.0, obs) == pytest.approx(0.2 + JERK_LIMIT * 0.1)
+    assert scale.to_env(-1.0, obs) == pytest.approx(0.2 - JERK_LIMIT * 0.1)
+    one_second = ActionScale(-6.0, 3.0, residual="idm+mobil", interval=1.0)
+    free = IDMMobilDriver().acceleration(obs, 1.0)  # 5 m/s³ over 1 s: IDM's own, unlimited
+    assert one_second.to_env(-1.0, obs) == pytest.approx(free - RESIDUAL_RANGE)
+    assert scale.to_policy(reference, obs) == pytest.approx(0.0)
+    assert scale.to_policy(reference + RESIDUAL_RANGE / 2, obs) == pytest.approx(0.5)
+
+
+def test_a_residual_action_brakes_hard_at_once_and_within_the_bounds() -> None:
+    scale = ActionScale(-6.0, 3.0, residual="idm+mobil")
+    leader = Neighbour(True, 4.0, 0.0, 5.0, "veh.1")  # close and much slower: IDM brakes hard
+    obs = make_observation(
+        ego=Ego(20.0, 0.0, 0, 1, 120.0, 25.0), neighbours=replace(free_road(), leader=leader)
+    )
+    assert scale.to_env(0.0, obs) == -6.0
+    assert scale.to_env(-1.0, obs) == -6.0
+
+
+def test_an_unknown_residual_base_is_refused() -> None:
+    with pytest.raises(ValueError, match="idm\\+mobil"):
+        ActionScale(-6.0, 3.0, residual="pid")
 
 
 @pytest.mark.parametrize(("every", "gap_rule"), [(1, False), (10, True)])

@@ -53,6 +53,14 @@ def test_without_a_ceiling_anywhere_the_ceiling_target_does_not_apply() -> None:
     assert targets_met(figures(speed_ratio_to_ceiling=math.nan), no_ceiling)["near_ceiling"]
 
 
+def test_the_ceiling_asked_is_no_more_than_the_reference_reaches() -> None:
+    trailing = {**IDM, "speed_ratio_to_ceiling": 0.9}  # a merging reference behind its leader
+    assert targets_met(figures(speed_ratio_to_ceiling=0.91), trailing)["near_ceiling"]
+    assert not targets_met(figures(speed_ratio_to_ceiling=0.89), trailing)["near_ceiling"]
+    ahead = {**IDM, "speed_ratio_to_ceiling": 1.1}
+    assert not targets_met(figures(speed_ratio_to_ceiling=0.97), ahead)["near_ceiling"]
+
+
 def test_on_a_road_with_a_lane_end_every_episode_must_arrive() -> None:
     routed = {**IDM, "route_lanes": 1, "arrival_share": 0.9}
     assert not targets_met(figures(arrival_share=0.95), routed)["arrives"]

@@ -118,3 +118,25 @@ def test_near_the_lane_end_the_change_towards_the_route_is_the_choice(
     blocked = sides(left_leader=near(10.0, 20.0), right_leader=near(10.0, 20.0))
     obs = make_observation(seq=3, ego=ego(1), neighbours=blocked, road=merging)
     assert LaneChoice(3, every=10, gap_rule=True).mask(obs).tolist() == expected
+
+
+@pytest.mark.parametrize(
+    ("exit_in", "expected"),
+    [(400.0, [True, False, True]), (1000.0, [True, True, True])],
+)
+def test_a_change_away_from_the_route_is_masked_where_it_leaves_too_little_to_come_back(
+    exit_in: float, expected: list[bool]
+) -> None:
+    """In the middle lane, the exit to the right 400 m ahead (its lane, the right one, leads
+    on): left would leave 2 lanes to cross in 400 m, less than 24 s per lane at 20 m/s; with
+    the exit beyond the road ahead's range both ways are open."""
+    exiting = Road(exit_in, -1, exit_in, ROAD_RANGE)
+    obs = make_observation(seq=0, ego=ego(1), neighbours=sides(), road=exiting)
+    assert LaneChoice(3, every=10).mask(obs).tolist() == expected
+
+
+def test_in_the_route_lane_a_change_into_a_lane_that_ends_is_masked() -> None:
+    """On the main road beside an acceleration lane that ends in 300 m: right is masked."""
+    beside_a_ramp = Road(ROAD_RANGE, 0, ROAD_RANGE, 300.0)
+    obs = make_observation(seq=0, ego=ego(1), neighbours=sides(), road=beside_a_ramp)
+    assert LaneChoice(3, every=10).mask(obs).tolist() == [True, True, False]

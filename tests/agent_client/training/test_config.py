@@ -125,7 +125,7 @@ def test_the_recommended_cf_settings_are_what_train_uses_by_default() -> None:
     assert plain == recommended("cf") == build_config(build_parser().parse_args(["train"]))
     default = TrainConfig()
     assert plain.eval_budget == 1.0 != default.eval_budget
-    assert plain.warmup_policy == "random" == default.warmup_policy
+    assert plain.warmup_policy == "auto" == default.warmup_policy  # random on cf: not residual
     assert plain.learner.deploy_tau == 0.001 != default.learner.deploy_tau
     assert plain.reward_params == {  # exactly these: an extra key would change the reward too
         "desired_headway": 1.1,
