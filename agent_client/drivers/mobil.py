@@ -108,19 +108,24 @@ class IDMMobilDriver:
         elif obs.time > self._last_time:
             self.interval = obs.time - self._last_time
         self._last_time = obs.time
-        road = road_ahead(obs)
         acceleration = self.acceleration(obs, self.interval)
+        due = obs.time >= self._next_decision
+        if due and not self._strategic(obs, road_ahead(obs)):
+            self._next_decision = obs.time + self.mobil.decision_interval - 1e-9
+        return acceleration, self.lane_change(obs, discretionary=due)
+
+    def lane_change(self, obs: Observation, discretionary: bool = True) -> int:
+        """The lane change alone (-1, 0, +1), which keeps no state: the one the route needs
+        where it is due (at every decision: safe by MOBIL's criterion, or urgent, the
+        simulator refusing an unsafe gap), else with `discretionary` MOBIL's choice (the
+        caller decides how often to ask: once a second)."""
+        road = road_ahead(obs)
         must = _sign(road.lanes_to_change)
         if obs.ego.changing_lane:
-            return acceleration, 0
-        if self._strategic(obs, road):  # every decision, safety only
-            if self._safe(obs, must) or self._urgent(obs, road):
-                return acceleration, must  # the simulator refuses an unsafe gap
-            return acceleration, 0
-        if obs.time < self._next_decision:
-            return acceleration, 0
-        self._next_decision = obs.time + self.mobil.decision_interval - 1e-9
-        return acceleration, self._discretionary(obs, road, must)
+            return 0
+        if self._strategic(obs, road):
+            return must if self._safe(obs, must) or self._urgent(obs, road) else 0
+        return self._discretionary(obs, road, must) if discretionary else 0
 
     def acceleration(self, obs: Observation, interval: float = DECISION_INTERVAL) -> float:
         """The acceleration alone (m/s²) for decisions every `interval` seconds, which keeps no

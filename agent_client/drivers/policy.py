@@ -29,6 +29,18 @@ STOP_DECELERATION = MobilParams().stop_deceleration
 RESIDUAL_BASES: dict[str, Callable[[Observation, float], float]] = {
     "idm+mobil": IDMMobilDriver().acceleration,
 }
+RESIDUAL_LANES: dict[str, Callable[[Observation, bool], int]] = {
+    "idm+mobil": IDMMobilDriver().lane_change,
+}
+"""A residual policy's lane changes: its reference's (`LaneChoice.reference`)."""
+
+
+def lane_choice(n_choices: int, every: int, gap_rule: bool, residual: str = "") -> LaneChoice:
+    """The lane choice of a policy; a residual one changes lanes as its reference does."""
+    reference = RESIDUAL_LANES[residual] if residual and n_choices > 1 else None
+    return LaneChoice(n_choices, every, gap_rule, reference)
+
+
 """The drivers a policy can be trained on top of: their acceleration, which keeps no state."""
 
 
@@ -139,8 +151,8 @@ def load_policy_driver(path: Path) -> PolicyDriver:
             f"{features.name!r} now has {features.dim} (the file was written by an older "
             "version): train it again"
         )
-    lanes = LaneChoice(policy.n_lane_actions, every, gap_rule)
     residual = str(state.get("residual", ""))  # "" in older files
+    lanes = lane_choice(policy.n_lane_actions, every, gap_rule, residual)
     interval = float(state.get("decision_interval", DECISION_INTERVAL))
     scale = ActionScale(low, high, residual, interval)
     return PolicyDriver(policy, features, scale, lanes)

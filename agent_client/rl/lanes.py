@@ -14,12 +14,14 @@ simulator's own gap check refuses the change into an unsafe gap (`route_side`), 
 MOBIL's; what the policy learns there is the speed that finds a gap. Further back, a change away
 from the route is masked where it would leave less than `ROUTE_KEEP_S` per lane to come back
 before the lane it moves to ends (`leaves_route`): a policy does not leave the exit lane 400 m
-before the exit, whatever its critic has learned so far.
+before the exit, whatever its critic has learned so far. With a `reference` (a residual policy's
+driver, IDM + MOBIL) the lane choices are that driver's: the one it makes is the only choice.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -76,6 +78,12 @@ class LaneChoice:
     """A lane decision at every `every`-th decision (1: at each)."""
     gap_rule: bool = False
     """Mask changes into gaps shorter than the `secure_gap` (policies from before it: off)."""
+    reference: Callable[[Observation, bool], int] | None = field(
+        default=None, compare=False, repr=False
+    )
+    """A driver's lane change for an observation (-1, 0, 1; the bool: whether a discretionary
+    change may be made now, at a lane decision), made the only choice: a residual policy
+    changes lanes as its reference does (`agent_client.drivers.policy.ActionScale`)."""
 
     def __post_init__(self) -> None:
         if self.n_choices not in (1, 3):
@@ -96,6 +104,11 @@ class LaneChoice:
         if self.n_choices == 1:
             return KEEP_ONLY
         ego = obs.ego
+        if self.reference is not None:
+            command = self.reference(obs, self.due(obs)) if ego.changing_lane == 0 else 0
+            if not 0 <= ego.lane + command < ego.lane_count:
+                command = 0
+            return np.array([command == 0, command == 1, command == -1])
         free, due, route = ego.changing_lane == 0, self.due(obs), route_side(obs)
         if free and route and 0 <= ego.lane + route < ego.lane_count:
             return np.array([False, route == 1, route == -1])  # the route's change, or nothing

@@ -75,8 +75,9 @@ class TrainConfig:
     first gradients, on an untrained critic, do not undo it)."""
     reference: str = "auto"
     """The driver the evaluations compare the policy with, on the same seeds (``as fast as``):
-    a driver spec (idm, idm+mobil, idm:PARAMS.json, a policy file), or auto: idm on one lane,
-    idm+mobil where lanes change."""
+    a driver spec (idm, idm+mobil, idm:PARAMS.json, a policy file), or auto: idm+mobil where
+    some scenario's route makes the ego change lanes (a lane end or an exit), else idm (on
+    cflc, as its targets were set and measured: lane keeping)."""
     lane_change: str = "auto"
     """Learn lane changes: yes, no, or auto (yes on multi-lane roads)."""
     episodes: int = 300

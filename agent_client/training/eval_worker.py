@@ -35,7 +35,7 @@ import numpy as np
 from agent_client.drivers.episode import Driver, run_episode
 from agent_client.drivers.idm import IDMDriver, IDMParams
 from agent_client.drivers.mobil import IDMMobilDriver, MobilParams
-from agent_client.drivers.policy import ActionScale, PolicyDriver
+from agent_client.drivers.policy import ActionScale, PolicyDriver, lane_choice
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import (
     AuthenticationFailed,
@@ -52,7 +52,6 @@ from agent_client.errors import (
 from agent_client.evaluation.metrics import episode_summary
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.greedy import GreedyPolicy
-from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.rewards import make_reward
 from protocol.messages import Observation
 from protocol.transport.direct import FrameReader, frame
@@ -334,8 +333,8 @@ def driver_from_message(message: dict[str, Any]) -> Driver:
     features = FeatureMap(str(message["features"]), int(message["lane_phase_every"]))
     n_choices, every, gap_rule = message["lanes"]
     low, high = message["scale"]
-    lanes = LaneChoice(int(n_choices), int(every), bool(gap_rule))
     residual, interval = str(message["residual"]), float(message["interval"])
+    lanes = lane_choice(int(n_choices), int(every), bool(gap_rule), residual)
     scale = ActionScale(float(low), float(high), residual, interval)
     return PolicyDriver(policy, features, scale, lanes)
 

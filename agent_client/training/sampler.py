@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 
 from agent_client.drivers.mobil import DECISION_INTERVAL
-from agent_client.drivers.policy import ActionScale
+from agent_client.drivers.policy import ActionScale, lane_choice
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import ServerError, ServerUnavailable
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.greedy import NumpyActor, NumpyCritic
-from agent_client.rl.lanes import LaneChoice, choose_lanes
+from agent_client.rl.lanes import choose_lanes
 from agent_client.rl.noise import ActionNoise, make_noise
 from agent_client.rl.rewards import RewardFn
 from agent_client.training.collect import (
@@ -146,7 +146,7 @@ class SamplingWorker:
             **spec.options,
         )  # fmt: skip
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
-        lanes = LaneChoice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule)
+        lanes = lane_choice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule, spec.residual)
         interval = float(spec.options.get("decision_interval", DECISION_INTERVAL))
         scale = ActionScale.from_schema(self.env.welcome.action, spec.residual, interval)
         self.exploration = Exploration(spec, scale, spec.seed + 7919 * (index + 1))

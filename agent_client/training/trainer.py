@@ -41,7 +41,7 @@ from agent_client.defaults import PRETRAIN_SEED, RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.drivers.episode import run_episode
 from agent_client.drivers.idm import IDMDriver
 from agent_client.drivers.mobil import IDMMobilDriver
-from agent_client.drivers.policy import ActionScale, PolicyDriver, save_policy
+from agent_client.drivers.policy import ActionScale, PolicyDriver, lane_choice, save_policy
 from agent_client.drivers.spec import load_driver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
@@ -56,7 +56,7 @@ from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_s
 from agent_client.evaluation.targets import FailureScreen, ceiling_target, targets_met
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
-from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
+from agent_client.rl.lanes import LANE_COMMANDS
 from agent_client.rl.policy import Policy
 from agent_client.rl.replay import ReplayBuffer
 from agent_client.rl.rewards import TRAFFIC_REWARDS, q_upper_bound
@@ -170,10 +170,11 @@ class Trainer:
         lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
         every = config.lane_decision_every if lane_change else 1
         self.features = FeatureMap(features, lane_phase_every=every)
-        self.lanes = LaneChoice(3 if lane_change else 1, every, config.lane_gap_rule)
         residual = config.residual if config.residual != "auto" else "idm+mobil" if routed else ""
+        residual = residual.replace("none", "")
+        self.lanes = lane_choice(3 if lane_change else 1, every, config.lane_gap_rule, residual)
         self.scale = ActionScale.from_schema(
-            self.env.welcome.action, residual.replace("none", ""), config.decision_interval
+            self.env.welcome.action, residual, config.decision_interval
         )
         n_envs *= config.egos  # one exploration noise process per ego slot
         self.agent = Agent(
@@ -186,7 +187,7 @@ class Trainer:
         self.idm = IDMDriver()
         """Pre-training clones its actions."""
         self.reference = load_driver(
-            config.reference if config.reference != "auto" else "idm+mobil" if multi_lane else "idm"
+            config.reference if config.reference != "auto" else "idm+mobil" if routed else "idm"
         )
         """The driver evaluations compare the policy with (`TrainConfig.reference`)."""
         self.reference_figures: dict[str, dict[str, float]] = {}

@@ -202,6 +202,40 @@ def test_lane_changing_training_runs_on_cflc(sumo_server: RunningServer, tmp_pat
     assert sum(int(r["lane_changes_started"]) + int(r["lane_changes_refused"]) for r in rows) > 0
 
 
+def test_a_run_on_merge_learns_a_residual_policy_that_merges(
+    sumo_server: RunningServer, tmp_path: Path
+) -> None:
+    """On the on-ramp the policy corrects IDM + MOBIL's acceleration (residual = auto) and
+    changes lanes as it does; after its actor has learned, it still merges on held-out seeds,
+    without a collision, and drives differently from its untrained start."""
+    # 0.1 s decisions: at 1 s IDM + MOBIL itself misses gaps (2 of 12 seeds end at the lane end)
+    config = fast_config(
+        scenario="merge", episodes=4, decision_interval=0.1, residual_burn_in=100,
+        learner={"learning_starts": 1000, "updates_per_step": 0.5},
+    )  # fmt: skip
+    trainer = Trainer(config, sumo_server.address, tmp_path / "run")
+    try:
+        assert trainer.scale.residual == "idm+mobil" and trainer.lanes.reference is not None
+        before = [p.clone() for p in trainer.agent.actor]
+        trainer.run()
+        moved = sum(
+            float((p - q).abs().sum()) for p, q in zip(trainer.agent.actor, before, strict=True)
+        )
+        driver = PolicyDriver(
+            trainer.agent.policy(), trainer.features, trainer.scale, trainer.lanes
+        )
+        from agent_client.drivers.episode import run_episode
+        from agent_client.evaluation.metrics import episode_summary
+
+        summaries = [episode_summary(run_episode(trainer.env, driver, s)) for s in (901, 902)]
+    finally:
+        trainer.close()
+    assert trainer.progress.updates > config.residual_burn_in
+    assert moved > 0.1  # the actor learned after its burn-in
+    assert [s.reason for s in summaries] == ["end_of_road"] * 2, summaries
+    assert all(s.collisions == 0 for s in summaries)
+
+
 def test_the_wave_reward_trains_on_the_ring_and_its_evaluations_rank_policies(
     sumo_server: RunningServer, tmp_path: Path
 ) -> None:

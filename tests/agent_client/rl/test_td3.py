@@ -373,6 +373,17 @@ def test_two_updates_in_one_call_are_two_updates() -> None:
     assert paired.n_updates == single.n_updates == 4
 
 
+def test_updates_without_the_actor_leave_it_as_it_was() -> None:
+    """A residual policy's burn-in: the critic learns, the actor (and its target) do not."""
+    agent = Agent(OBS_DIM, 3, eager(TD3Config.td3(batch_size=32)), seed=0)
+    buffer = _bandit_buffer(3, seed=0, n=300, terminated=0.0)
+    actor, critics = _params(agent.state.actor), _params(agent.state.critics)
+    agent.update_many([buffer.sample(32) for _ in range(4)], actor=False)
+    torch.testing.assert_close(_params(agent.state.actor), actor)
+    assert not torch.equal(_params(agent.state.critics), critics)
+    assert agent.n_updates == 4
+
+
 def test_the_compiled_update_is_the_eager_update() -> None:
     config = TD3Config.td3(batch_size=16, target_noise=0.0, hidden_sizes=(8, 8))
     compiled, plain = Agent(OBS_DIM, 3, config, seed=0), Agent(OBS_DIM, 3, eager(config), seed=0)
