@@ -29,6 +29,7 @@ STOP_DECELERATION = MobilParams().stop_deceleration
 RESIDUAL_BASES: dict[str, Callable[[Observation, float], float]] = {
     "idm+mobil": IDMMobilDriver().acceleration,
 }
+"""The drivers a policy can be trained on top of: their acceleration, which keeps no state."""
 RESIDUAL_LANES: dict[str, Callable[[Observation, bool], int]] = {
     "idm+mobil": IDMMobilDriver().lane_change,
 }
@@ -39,9 +40,6 @@ def lane_choice(n_choices: int, every: int, gap_rule: bool, residual: str = "") 
     """The lane choice of a policy; a residual one changes lanes as its reference does."""
     reference = RESIDUAL_LANES[residual] if residual and n_choices > 1 else None
     return LaneChoice(n_choices, every, gap_rule, reference)
-
-
-"""The drivers a policy can be trained on top of: their acceleration, which keeps no state."""
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ evaluation report applies the same criteria to the policy against its baseline.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 
 from agent_client.evaluation.metrics import EpisodeSummary
@@ -79,9 +79,9 @@ class FailureScreen:
     """Per seed (in evaluation order), the highest average speed any driver can reach: on one
     lane the leader-at-entry ceiling, which IDM's episode on that seed measured. None where a
     driver can pass its leader (several lanes): the speed targets are judged at the end."""
-    routed: bool = False
-    """The road has a lane end or an exit: an episode that does not reach the end of the route
-    fails ``arrives``."""
+    routed: Collection[int] = frozenset()
+    """The seed indices (in evaluation order) whose road has a lane end or an exit: there an
+    episode that does not reach the end of the route fails ``arrives``."""
     ceiling: float = CEILING_TARGET
     """The share of the ceiling ``near_ceiling`` asks (`ceiling_target`)."""
 
@@ -90,7 +90,7 @@ class FailureScreen:
         `remaining` give; None while every target can still be met."""
         if any(s.collisions for s in done):
             return "no_collisions"
-        if self.routed and any(s.reason != EndReason.END_OF_ROAD for s in done):
+        if any(s.episode in self.routed and s.reason != EndReason.END_OF_ROAD for s in done):
             return "arrives"
         left = len(remaining)
         if self.max_steps is not None:

@@ -100,7 +100,8 @@ class LaneChoice:
         return lane_phase(obs.seq, self.every)
 
     def mask(self, obs: Observation) -> np.ndarray:
-        """(n_choices,) bool: the choices that can happen now (keep always can)."""
+        """(n_choices,) bool: the choices that can happen now; at least one (keep, except
+        where the route's change, or a `reference`'s, is the only choice)."""
         if self.n_choices == 1:
             return KEEP_ONLY
         ego = obs.ego

@@ -62,8 +62,9 @@ class TrainConfig:
     """Keyword parameters of the reward, e.g. ``{desired_headway = 1.1}`` for safe (the fields
     of its class in `agent_client.rl.rewards`); {}: the reward's defaults."""
     features: str = "auto"
-    """Network inputs: cf, lc, road, or auto (on roads with several lanes road where the server
-    reports the road ahead, protocol 1.6, else lc; cf on one lane)."""
+    """Network inputs: cf, lc, road, or auto: road where a lane ends along some scenario's route
+    (from a server that reports the road ahead, protocol 1.6), lc on other roads of several
+    lanes (cflc, as measured), cf on one lane."""
     residual: str = "auto"
     """What the actor's acceleration is: none (the acceleration itself) or idm+mobil (a
     correction of up to ±2 m/s² of IDM + MOBIL's acceleration, residual policy learning: the
@@ -172,6 +173,16 @@ class TrainConfig:
     learner: TD3Config = field(default_factory=lambda: RECOMMENDED_LEARNER)
     """Learner hyper-parameters (default: `RECOMMENDED_LEARNER`)."""
 
+    def _check_reference(self) -> None:
+        if self.reference == "sumo":
+            raise UsageError(
+                "reference 'sumo' cannot be the trainer's reference: the simulator's own driver "
+                "sends no actions to clone or evaluate beside the policy's; use idm, idm+mobil, "
+                "idm:PARAMS.json or a policy file (evaluate --reference sumo compares with it)"
+            )
+        if self.residual_burn_in < 0:
+            raise UsageError(f"residual_burn_in must be >= 0, got {self.residual_burn_in}")
+
     def __post_init__(self) -> None:
         from agent_client.rl.features import FEATURE_SETS
         from agent_client.rl.rewards import REWARDS
@@ -195,6 +206,7 @@ class TrainConfig:
             raise UsageError(f"scenario must be a name or a list of names, got {self.scenario!r}")
         if len(set(names)) != len(names):
             raise UsageError(f"scenario lists a scenario twice: {', '.join(names)}")
+        self._check_reference()
         for setting in dataclasses.fields(self):  # --set eval_screen=False is not false
             value = getattr(self, setting.name)
             if isinstance(setting.default, bool) and not isinstance(value, bool):

@@ -166,6 +166,7 @@ class EvaluationPool:
         options: dict[str, OptionValue],
         timeout_s: float = STEP_TIMEOUT_S,
         idle_priority: bool = False,
+        reset_timeout_s: float = RESET_TIMEOUT_S,
     ) -> None:
         """Start a worker per address and wait until each has shaken hands with its server.
         `idle_priority`: the workers run in the idle scheduling class (for background jobs)."""
@@ -178,9 +179,10 @@ class EvaluationPool:
             "reward_params": dict(reward_params),
             "options": dict(options),
             "timeout_s": timeout_s,
+            "reset_timeout_s": reset_timeout_s,
         }
         self.idle_priority = idle_priority
-        self.silence_s = max(timeout_s, RESET_TIMEOUT_S) + 10 * ALIVE_EVERY_S
+        self.silence_s = max(timeout_s, reset_timeout_s) + 10 * ALIVE_EVERY_S
         """A worker silent for longer while the learner waits is hung: its own waits on its
         server end sooner, and at work it says it is alive every `ALIVE_EVERY_S`."""
         self.workers: list[_WorkerProcess] = []

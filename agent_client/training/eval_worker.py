@@ -216,6 +216,7 @@ class _Worker:
                     scenario if isinstance(scenario, str) else [str(s) for s in scenario],
                     reward=make_reward(str(message["reward"]), **message["reward_params"]),
                     timeout_s=float(message["timeout_s"]),
+                    reset_timeout_s=float(message["reset_timeout_s"]),
                     **message["options"],
                 )
             except (ServerUnavailable, ServerError) as exc:

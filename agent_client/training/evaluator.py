@@ -11,6 +11,7 @@ run inline they are time the learner does not get.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -97,6 +98,9 @@ class Evaluator:
         self._sent: list[str | None] = [None] * len(self.envs)
         self._done: dict[int, EpisodeSummary] = {}
         self._judged = 0
+        self._drivers: list[Driver] = []
+        """The job's driver, one copy per environment: a driver may keep an episode's state
+        (IDM + MOBIL its decision times), which episodes in lock-step must not share."""
 
     @property
     def busy(self) -> bool:
@@ -109,6 +113,7 @@ class Evaluator:
         self._next_seed = 0
         self._done = {}
         self._judged = 0
+        self._drivers = [copy.deepcopy(job.driver) for _ in self.envs]
 
     def send(self) -> None:
         """Start the next step (or episode) of the running job on every environment."""
@@ -125,7 +130,7 @@ class Evaluator:
                 self._running[index] = _Running(seed_index, episode)
                 self._sent[index] = "reset"
             elif running is not None and running.obs is not None:
-                acceleration, lane_change = job.driver.act(running.obs)
+                acceleration, lane_change = self._drivers[index].act(running.obs)
                 env.send_command(acceleration, lane_change)
                 self._sent[index] = "step"
 

@@ -65,7 +65,7 @@ class WarmupDriver:
             u = self.scale.to_policy(acceleration, slot.obs)
             u += self.rng.normal(0.0, self.noise_sigma)
             lane = 0
-            if self.rng.random() < WARMUP_LANE_PROBABILITY:
+            if not slot.mask[lane] or self.rng.random() < WARMUP_LANE_PROBABILITY:
                 lane = int(self.rng.choice(possible))
             return float(np.clip(u, -1.0, 1.0)), lane
         return float(self.rng.uniform(-1.0, 1.0)), int(self.rng.choice(possible))

@@ -20,7 +20,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from agent_client.defaults import RESET_TIMEOUT_S
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError, UsageError
 from agent_client.training.collect import Collected
@@ -89,7 +88,8 @@ class RayCollector:
         self._worker_versions: list[int] = []
         self._since_sync = 0
         self._started_ray = False
-        self.chunk_timeout_s = chunk_steps * spec.timeout_s + RESET_TIMEOUT_S + spec.retry_for_s
+        steps_s = chunk_steps * spec.timeout_s
+        self.chunk_timeout_s = steps_s + spec.reset_timeout_s + spec.retry_for_s
         """The longest a chunk can take: every step and a reset at their deadlines, one outage."""
         self.failed_episodes = 0
         self.reconnects = 0
@@ -243,6 +243,7 @@ def ray_collector(
         timeout_s=env.timeout_s,
         retry_for_s=retry_for_s,
         residual=residual,
+        reset_timeout_s=env.reset_timeout_s,
     )
 
     def settings() -> Settings:  # the schedule of `Trainer._choose`

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from agent_client.defaults import RESET_TIMEOUT_S
 from agent_client.drivers.mobil import DECISION_INTERVAL
 from agent_client.drivers.policy import ActionScale, lane_choice
 from agent_client.envs.remote_env import RemoteEnv
@@ -62,6 +63,7 @@ class WorkerSpec:
     retry_for_s: float = 0.0
     residual: str = ""
     """The trainer's `ActionScale.residual`: what the actor's output corrects."""
+    reset_timeout_s: float = RESET_TIMEOUT_S
 
 
 @dataclass(frozen=True)
@@ -143,7 +145,7 @@ class SamplingWorker:
         self.index = index
         self.env = RemoteEnv(
             spec.address, spec.scenario, reward=spec.reward, timeout_s=spec.timeout_s,
-            **spec.options,
+            reset_timeout_s=spec.reset_timeout_s, **spec.options,
         )  # fmt: skip
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
         lanes = lane_choice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule, spec.residual)

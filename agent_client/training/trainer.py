@@ -86,7 +86,7 @@ from agent_client.training.progress import (
     evaluation_line,
 )
 from agent_client.training.run_log import RunLog
-from protocol.messages import Observation
+from protocol.messages import ROAD_RANGE, Observation, Road
 from protocol.version import ROAD_VERSION
 
 if TYPE_CHECKING:
@@ -97,8 +97,10 @@ T = TypeVar("T")
 COMPILED_LOAD_NOTICE_S = 1.0
 """A first update slower than this was the compiled update loading: said as such."""
 
-PROBE_STEPS = 300
-"""Decisions of each scenario's first episode driven to see whether its lanes change."""
+PROBE_STEPS = 600
+"""Decisions of each scenario's first episode driven to see whether its lanes change and a
+lane ends along its route (a minute at 0.1 s: an on-ramp's lanes start after the ramp, an
+exit's lane ends show within the road ahead's 1000 m)."""
 
 __all__ = ["Progress", "QuietReporter", "Reporter", "Trainer"]
 
@@ -150,6 +152,7 @@ class Trainer:
                 self.eval_pool = EvaluationPool(
                     eval_servers, config.scenarios, config.reward, config.reward_params, options,
                     timeout_s, idle_priority=config.eval_while_training,
+                    reset_timeout_s=reset_timeout_s,
                 )  # fmt: skip
             self._build(len(servers))
         except BaseException:
@@ -166,7 +169,7 @@ class Trainer:
         features = config.features
         if features == "auto":
             road = self.env.welcome.protocol >= ROAD_VERSION
-            features = ("road" if road else "lc") if multi_lane else "cf"
+            features = ("road" if road and routed else "lc") if multi_lane else "cf"
         lane_change = config.lane_change == "yes" or (config.lane_change == "auto" and multi_lane)
         every = config.lane_decision_every if lane_change else 1
         self.features = FeatureMap(features, lane_phase_every=every)
@@ -256,9 +259,9 @@ class Trainer:
 
     def _lanes_and_routes(self) -> tuple[bool, bool]:
         """Whether lanes can be changed on some scenario (a road of several lanes), and
-        whether some route makes the ego change them (`Road.lanes_to_change`): seen within the
-        first `PROBE_STEPS` decisions of an episode of each (an on-ramp's lanes start after the
-        ramp), driven by IDM + MOBIL."""
+        whether some route makes the ego change them (a lane to leave, or one beside that ends:
+        `Road`): seen within the first `PROBE_STEPS` decisions of an episode of each, driven by
+        IDM + MOBIL."""
         env, seed = self.env, self.config.seed
         lanes = routed = False
         for index in range(len(env.scenarios)):
@@ -267,7 +270,7 @@ class Trainer:
             obs, driver = info["observation"], IDMMobilDriver()
             for _ in range(PROBE_STEPS):
                 lanes = lanes or obs.ego.lane_count > 1
-                routed = routed or bool(obs.road and obs.road.lanes_to_change)
+                routed = routed or _lane_ends(obs.road)
                 if routed or obs.terminated or obs.truncated:
                     break
                 env.send_command(*driver.act(obs))
@@ -575,7 +578,8 @@ class Trainer:
             x, u = self.features(before), self.scale.to_policy(action[0], before)
             mask, next_mask = self.lanes.mask(before), self.lanes.mask(after)
             lane = LANE_COMMANDS.index(action[1]) if self.lanes.n_choices > 1 else 0
-            self.buffer.add(x, u, lane if mask[lane] else 0, reward, self.features(after),
+            lane = lane if mask[lane] else int(np.flatnonzero(mask)[0])  # the buffer: valid ones
+            self.buffer.add(x, u, lane, reward, self.features(after),
                             after.terminated, mask, next_mask)  # fmt: skip
             states.append(x)
             targets.append(u)
@@ -675,7 +679,12 @@ class Trainer:
         bounds an episode's steps, and on one lane IDM's ceilings bound every seed's speed."""
         assert self.idm_eval is not None
         options = self.env.scenario_options
-        routed = self.idm_eval.get("route_lanes", 0) > 0
+        figures, eval_seeds = self.reference_figures, self._eval_seeds()
+        routed = {  # where the reference's route made it change lanes: there it must arrive
+            index
+            for index, seed in enumerate(eval_seeds[:seeds])
+            if figures.get(self.env.scenario_for(seed), {}).get("route_lanes", 0) > 0
+        }
         limit = _number(options.get("max_episode_time"))
         interval = _number(options.get("decision_interval"))  # the env's, as the server has it
         max_steps = math.ceil(limit / interval) + 10 if limit and interval else None
@@ -935,3 +944,12 @@ def _plain(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     return value
+
+
+def _lane_ends(road: Road | None) -> bool:
+    """Whether the road ahead shows a lane that ends along the route: the ego's own (a change
+    to make) or one beside it (0 there: no lane)."""
+    if road is None:
+        return False
+    beside = (road.left_lane_end, road.right_lane_end)
+    return bool(road.lanes_to_change) or any(0.0 < end < ROAD_RANGE for end in beside)

@@ -66,10 +66,11 @@ def test_drive_runs_the_model_drivers_by_name(sumo_server: RunningServer) -> Non
         result = subprocess.run(
             [sys.executable, "-m", "agent_client.cli.main", "drive", "--server",
              sumo_server.address, "--scenario", "lanedrop", "--policy", spec, "--episodes", "1",
-             "--seed", "3", "--json", "--option", "drop_distance=500"],
+             "--seed", "3", "--json", "--option", "drop_distance=500",
+             "--option", "dropped_lane=right", "--option", "ego_lane=0"],
             capture_output=True, text=True, timeout=300, check=False,
         )  # fmt: skip
         assert result.returncode == 0, result.stderr
         (episode,) = [json.loads(line) for line in result.stdout.splitlines()]
         assert episode["reason"] == "end_of_road" and episode["collisions"] == 0
-        assert episode["route_lanes"] >= 0
+        assert episode["route_lanes"] == 1  # it started in the lane that ends, and left it

@@ -57,6 +57,8 @@ MAX_HIGHWAY_EGOS = 16
 in the vehicles on the road."""
 CEILING_HORIZON = 3600.0
 """Longest extra simulated time (s) spent waiting for the leader-at-entry to arrive."""
+CEILING_MIN_SPEED = 5.0
+"""m/s: the slowest average speed the leader-at-entry is waited for over its remaining road."""
 SIMULATOR_DRIVERS = ("simulator", "sumo")
 """Values of ``ego_driver`` that let highway-env's human model drive the ego."""
 
@@ -305,7 +307,11 @@ class HighwayBackend(Backend):
             layout = episode.layout
             mine = layout.along(leader)
             road.vehicles = [v for v in road.vehicles if layout.along(v) >= mine]
-            end = episode.steps + round(CEILING_HORIZON * SIMULATION_FREQUENCY)
+            # As SUMO's server: the time its remaining road takes at CEILING_MIN_SPEED, and a
+            # minute (a leader that leaves by a ramp never arrives where the ego does).
+            remaining = max(0.0, layout.length - mine)
+            horizon = min(CEILING_HORIZON, 60.0 + remaining / CEILING_MIN_SPEED)
+            end = episode.steps + round(horizon * SIMULATION_FREQUENCY)
             while episode.leader_arrival is None and episode.steps < end:
                 if leader.crashed or stranded(episode, leader):
                     break  # highway-env stops it for good: it never arrives

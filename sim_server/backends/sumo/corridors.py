@@ -10,7 +10,7 @@ The geometry is drawn from the episode's seed (ramp and acceleration-lane length
 to the exit or the drop, the lanes), so that a policy learns to read the road (`Road` on the
 wire) rather than one road by heart; each option of the geometry fixes it instead when set. The
 draws come from short grids, so that a handful of networks serve every seed: each is built once
-by netconvert into the scenario cache (`scenarios._write_scenario`), like ``cf``.
+by netconvert into the scenario cache (`scenarios.write_scenario`), like ``cf``.
 """
 
 from __future__ import annotations
@@ -124,9 +124,11 @@ class ExitOptions(ParsedOptions):
             raise invalid_option("option main_lanes must be 0 (drawn), 2, 3 or 4")
         if 0 < self.deceleration_lane < 20:
             raise invalid_option("option deceleration_lane must be 0 or >= 20 m")
-        if self.exit_distance and self.exit_distance < self.deceleration_lane + 100:
+        deceleration = self.deceleration_lane or max(DECELERATION_LANES)  # the longest drawn
+        if self.exit_distance and self.exit_distance < deceleration + 100:
             raise invalid_option(
-                "option exit_distance must leave at least 100 m before the deceleration lane"
+                "option exit_distance must leave at least 100 m before the deceleration lane "
+                f"({deceleration:g} m here: exit_distance >= {deceleration + 100:g})"
             )
 
 

@@ -63,12 +63,15 @@ def test_near_the_lane_end_it_asks_at_every_decision_and_brakes_for_the_end() ->
 
 
 def test_no_change_leads_away_from_the_route() -> None:
-    slow_leader = Neighbour(True, 15.0, 0.0, 10.0, "slow")
-    to_exit = Road(900.0, -1, ROAD_RANGE, 900.0)  # beyond the look-ahead: not strategic yet
-    driver = IDMMobilDriver()
-    accelerations = [driver.act(scene(lane=1, road=to_exit, leader=slow_leader))]
-    assert accelerations[0][1] != 1
-    assert IDMMobilDriver().act(scene(lane=0, leader=slow_leader))[1] == 1  # open road: passes
+    """Slow leaders ahead and to the left, the right lane free: MOBIL would go right, but the
+    route leaves to the left (beyond the look-ahead: not strategic yet)."""
+    slow, slow_left = Neighbour(True, 15.0, 0.0, 10.0, "slow"), Neighbour(True, 15.0, 3.2, 10.0)
+    open_road = scene(lane=1, leader=slow, left_leader=slow_left)
+    assert IDMMobilDriver().act(open_road)[1] == -1
+    to_the_left = Road(900.0, 1, 900.0, 900.0)
+    blocked = scene(lane=1, road=to_the_left, leader=slow, left_leader=slow_left)
+    assert IDMMobilDriver().act(blocked)[1] != -1
+    assert IDMMobilDriver().act(scene(lane=0, leader=slow))[1] == 1  # open road: passes
 
 
 def test_it_does_not_change_into_a_lane_that_ends_soon() -> None:
@@ -89,8 +92,16 @@ def test_mobil_passes_a_slow_leader_once_a_second_if_safe() -> None:
 
 
 def test_keeping_right_needs_no_gain_but_leaving_it_does() -> None:
-    driver = IDMMobilDriver()
-    assert driver.act(scene(lane=1))[1] == 0  # an empty road: nothing to gain either way
+    """The bias (0.2 m/s²) against leaving the right: a leader whose gain is ~0.3 m/s² is
+    passed on the right lane's side from the middle, never by moving left."""
+    assert IDMMobilDriver().act(scene(lane=1))[1] == 0  # an empty road: nothing to gain
+    leader = Neighbour(True, 100.0, 0.0, 24.0, "a little slower")
+    unlimited = 100.0  # s: a decision interval that lifts the jerk limit, to see IDM's own
+    free = IDMMobilDriver().acceleration(scene(lane=1), unlimited)
+    gain = free - IDMMobilDriver().acceleration(scene(lane=1, leader=leader), unlimited)
+    assert 0.2 < gain < 0.2 + 0.2  # above the threshold, below threshold + bias
+    assert IDMMobilDriver().act(scene(lane=1, leader=leader))[1] == -1  # right: threshold only
+    assert IDMMobilDriver().act(scene(lane=0, leader=leader))[1] == 0  # left: + bias
 
 
 @pytest.mark.parametrize("spec", ["idm+mobil", "sumo"])

@@ -69,11 +69,15 @@ def test_on_a_road_with_a_lane_end_every_episode_must_arrive() -> None:
 
 
 def test_the_screen_fails_arrives_at_the_first_episode_that_does_not() -> None:
-    screen = FailureScreen(seeds=4, idm_speed=14.0, routed=True)
+    screen = FailureScreen(seeds=4, idm_speed=14.0, routed={1, 3})
     assert screen.failed([summary()], remaining(1)) is None
-    stood = dataclasses.replace(summary(), reason="lane_end")
+    stood = dataclasses.replace(summary(), reason="lane_end", episode=1)
     assert screen.failed([summary(), stood], remaining(2)) == "arrives"
     assert FailureScreen(seeds=4, idm_speed=14.0).failed([stood], remaining(1)) is None
+    # Seed 0's scenario has no lane end (cflc in a mix): an episode that does not arrive there
+    # (a time limit) fails nothing.
+    timed_out = dataclasses.replace(summary(), reason="time_limit", episode=0)
+    assert screen.failed([timed_out], remaining(1)) is None
 
 
 def summary(

@@ -169,3 +169,19 @@ def test_a_configuration_file_overrides_the_recommended_settings(tmp_path: Path)
     config = build_config(parsed)
     assert config.eval_budget == 0.4 and config.learner.deploy_tau == 0.005
     assert config.reward_params == recommended("cf").reward_params  # what it did not name
+
+
+@pytest.mark.parametrize(
+    ("setting", "named"),
+    [
+        ({"reference": "sumo"}, "evaluate --reference sumo"),  # no actions to compare with
+        ({"residual_burn_in": -1}, "residual_burn_in must be >= 0"),
+        ({"residual": "pid"}, "residual 'pid' is not one of"),
+        ({"warmup_policy": "mobil"}, "warmup_policy 'mobil' is not one of: auto"),
+    ],
+)
+def test_a_bad_real_roads_setting_is_a_usage_error_naming_it(
+    setting: dict[str, object], named: str
+) -> None:
+    with pytest.raises(UsageError, match=named):
+        TrainConfig(**setting)  # type: ignore[arg-type]

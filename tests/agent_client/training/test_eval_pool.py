@@ -320,7 +320,8 @@ def test_a_worker_whose_first_connection_failed_connects_on_reconnect() -> None:
     worker.start()
     try:
         connect = {"op": "connect", "id": 1, "address": address, "scenario": "cf",
-                   "reward": "safe", "reward_params": {}, "options": {}, "timeout_s": 0.5}  # fmt: skip
+                   "reward": "safe", "reward_params": {}, "options": {}, "timeout_s": 0.5,
+                   "reset_timeout_s": 5.0}  # fmt: skip
         learner.send(connect)
         answer = learner.receive(30.0)
         assert answer is not None and (answer["op"], answer["id"]) == ("error", 1)

@@ -72,6 +72,7 @@ def test_an_option_fixes_what_it_sets_whatever_the_seed() -> None:
         (MergeOptions, {"ego_start": "roof"}, "ego_start must be one of ramp, main"),
         (MergeOptions, {"acceleration_lane": 5.0}, ">= 20 m"),
         (ExitOptions, {"exit_distance": 150.0, "deceleration_lane": 100.0}, "at least 100 m"),
+        (ExitOptions, {"exit_distance": 250.0}, "exit_distance >= 300"),  # a drawn lane: 200 m
         (ExitOptions, {"ego_lane": 4}, "ego_lane must be <= 3"),
         (LaneDropOptions, {"dropped_lane": "middle"}, "dropped_lane must be one of"),
         (LaneDropOptions, {"drop_distance": 50.0}, ">= 100 m"),
