@@ -152,7 +152,8 @@ def test_the_recommended_reward_parameters_go_only_with_their_reward() -> None:
 
 def test_other_scenarios_train_with_the_defaults() -> None:
     assert recommended("cflc") == TrainConfig(scenario="cflc")
-    assert recommended(["merge", "cf"]) == TrainConfig(scenario=["merge", "cf"])
+    several = TrainConfig(scenario=["merge", "cf"], episodes=2 * TrainConfig().episodes)
+    assert recommended(["merge", "cf"]) == several  # as many episodes of each as one alone
     parsed = build_parser().parse_args(["train", "--scenario", "cflc"])
     assert build_config(parsed) == TrainConfig(scenario="cflc")
 
