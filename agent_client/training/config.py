@@ -302,10 +302,10 @@ and after a failed evaluation a wait of its steps only. configs/cf.toml spells t
 
 
 def recommended(scenario: str | list[str] = DEFAULT_SCENARIO, reward: str = "safe") -> TrainConfig:
-    """The recommended configuration for `scenario` and `reward`: the defaults, and where a
-    scenario has settings of its own (`RECOMMENDED`) those (its reward parameters only with
-    the reward they are for, safe); several scenarios get `episodes` each. `agent-client train` starts from it; a ``--config`` file,
-    flags and ``--set`` override it."""
+    """The recommended configuration for `scenario` and `reward`: the defaults, and where a scenario
+    has settings of its own (`RECOMMENDED`) those (its reward parameters only with the reward they
+    are for, safe); several scenarios get `episodes` each. `agent-client train` starts from it; a
+    ``--config`` file, flags and ``--set`` override it."""
     config = TrainConfig(scenario=scenario, reward=reward)
     names = config.scenarios
     own = dict(RECOMMENDED.get(names[0], {})) if len(names) == 1 else {}
