@@ -23,9 +23,11 @@ from tests.conftest import RunningServer, sim_server
 
 pytestmark = [pytest.mark.sumo, pytest.mark.slow]
 
-# One-second decisions keep these runs short: ~130 decisions per episode.
+# One-second decisions keep these runs short: ~130 decisions per episode. IDM's warm-up drives
+# whole episodes (random actions stop within ~10 s), so that learning starts within a few of them.
 FAST = {
     "decision_interval": 1.0,
+    "warmup_policy": "idm",
     "eval_every": 0,
     "checkpoint_every": 1,
     "learner": {
@@ -74,7 +76,7 @@ def test_a_short_run_improves_on_its_untrained_start(
 def train_command(server: str, out: Path, *extra: str) -> list[str]:
     return [
         sys.executable, "-m", "agent_client.cli.main", "train", "--server", server, "--out", str(out),
-        "--quiet", "--decision-interval", "1.0", "--set", "eval_every=0",
+        "--quiet", "--decision-interval", "1.0", "--set", "eval_every=0", "--set", "warmup_policy=idm",
         "--set", "checkpoint_every=1", "--set", "learner.learning_starts=200",
         "--set", "learner.batch_size=64", "--set", "learner.compile=false", *extra,
     ]  # fmt: skip

@@ -113,8 +113,9 @@ def test_a_backend_that_is_not_installed_says_what_to_install(
     monkeypatch: pytest.MonkeyPatch,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    for name in importers:  # imported afresh, without the simulator
-        monkeypatch.delitem(sys.modules, f"sim_server.backends.{name}", raising=False)
+    prefixes = tuple(f"sim_server.backends.{name}" for name in importers)
+    for cached in [m for m in sys.modules if m.startswith(prefixes)]:  # afresh, with submodules
+        monkeypatch.delitem(sys.modules, cached)
     monkeypatch.setitem(sys.modules, module, None)  # as if not installed
     line = refused([*LOOPBACK, "--backend", backend], capsys)
     assert f"--backend {backend} needs {package}" in line
