@@ -123,7 +123,7 @@ def _decode(frame: bytes, allowed: dict[str, type], max_frame_bytes: int) -> Mes
             ErrorCode.FRAME_TOO_LARGE,
             f"frame of {len(frame)} bytes exceeds the limit of {max_frame_bytes} bytes",
         )
-    leading = _leading_type(frame)
+    leading = leading_type(frame)
     fast = _fast_decoder(allowed[leading]) if leading in allowed else None
     if fast is not None:
         decoder, in_range = fast
@@ -505,8 +505,9 @@ def _missing(path: str, name: str) -> ProtocolError:
 # --------------------------------------------------------------------------- the fast path
 
 
-def _leading_type(frame: bytes) -> str | None:
-    """The message type named by the frame's first key if that key is ``type`` (else None)."""
+def leading_type(frame: bytes) -> str | None:
+    """The message type named by the frame's first key if that key is ``type`` (else None): a
+    look at a frame without decoding it (the codec's fast path, a pool's routing)."""
     if not frame:
         return None
     head = frame[0]

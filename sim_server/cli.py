@@ -209,11 +209,20 @@ def _add_security_arguments(group: argparse._ArgumentGroup) -> None:
 
 def _add_process_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument(
+        "--pool",
+        type=int,
+        default=1,
+        help="serve up to N clients at once on the one --bind address, each on a simulator "
+        "process of its own (started and restarted by this one; a client that finds all N "
+        "busy is told so); over tcp:// and ipc:// (default 1: this process simulates)",
+    )
+    group.add_argument(
         "--workers",
         type=int,
         default=1,
         help="run N servers (one simulation each) on consecutive ports from --bind (port 0: free "
-        "ports), print one readiness line per worker, restart any that dies (default 1)",
+        "ports), print one readiness line per worker, restart any that dies (default 1; "
+        "--pool serves as many on one address)",
     )
     group.add_argument(
         "--exit-with-parent",
@@ -391,6 +400,15 @@ def _check_recording(args: argparse.Namespace) -> None:
 def _check_numbers(args: argparse.Namespace) -> None:
     if args.workers < 1:
         raise UsageError(f"--workers {args.workers}: must be at least 1")
+    if args.pool < 1:
+        raise UsageError(f"--pool {args.pool}: must be at least 1")
+    if args.pool > 1 and args.workers > 1:
+        raise UsageError("--pool and --workers: choose one (a pool serves N on one address)")
+    if args.pool > 1 and args.bind.startswith("direct://"):
+        raise UsageError(
+            f"--pool {args.pool}: a pool serves over tcp:// or ipc:// (ZeroMQ); over direct:// "
+            "run --workers N (one address each)"
+        )
     if args.max_frame_bytes < 1:
         raise UsageError(f"--max-frame-bytes {args.max_frame_bytes}: must be at least 1")
     if not args.heartbeat_timeout > 0:
@@ -472,6 +490,8 @@ def main(argv: list[str] | None = None) -> int:
             set_idle_priority()
         if args.workers > 1:
             return _run_workers(argv, args)
+        if args.pool > 1:
+            return _run_pool(argv, args, credentials)
         backend = make_backend(args)
     except UsageError as exc:
         message = " ".join(str(exc).splitlines())
@@ -488,6 +508,20 @@ def _run_workers(argv: list[str], args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--workers {args.workers}: {exc}") from exc
     return run_workers(argv, addresses)
+
+
+def _run_pool(
+    argv: list[str], args: argparse.Namespace, credentials: ServerCredentials | None
+) -> int:
+    from sim_server.serve.pool import run_pool
+
+    private = (SECRET_KEY_ENV, AUTHORIZED_KEYS_ENV)  # the simulators serve the front over ipc
+    return run_pool(
+        argv, args.pool, credentials, bind=args.bind, heartbeat_timeout_s=args.heartbeat_timeout,
+        session_timeout_s=args.session_timeout, max_frame_bytes=args.max_frame_bytes,
+        exit_with_parent=args.exit_with_parent,
+        env={k: v for k, v in os.environ.items() if k not in private},
+    )  # fmt: skip
 
 
 def serve(

@@ -142,7 +142,8 @@ class Session:
                 return
         raise ProtocolError(
             ErrorCode.BUSY,
-            "another client holds this simulator; start another server or retry later",
+            "another client holds this simulator; start another server, serve several clients "
+            "on one address (sim-server --pool N) or retry later",
         )
 
     def _dispatch(self, peer: bytes, request: Message) -> bytes:

@@ -130,7 +130,11 @@ def check_ownership(kit: Kit) -> str:
     kit.running_episode(50, 1)
     other = Probe(kit.address, kit.timeout_s, "agent-client-check-other")
     try:
-        for request in (Hello(PROTOCOL_VERSION, CLIENT_NAME), Step(2, 0.0), Close()):
+        first = other.ask(Hello(PROTOCOL_VERSION, CLIENT_NAME))
+        if isinstance(first, Welcome):  # a server of several sessions: this one was free
+            return _sessions_apart(kit, other)
+        expect_error(first, ErrorCode.BUSY, "another client's hello")
+        for request in (Step(2, 0.0), Close()):
             expect_error(other.ask(request), ErrorCode.BUSY, f"another client's {request.TYPE}")
         kit.step(2, 0.0)  # the owner's episode is untouched
         kit.probe.drop()  # the owner is "killed": its connection closes without a close
@@ -144,6 +148,23 @@ def check_ownership(kit: Kit) -> str:
     return (
         "another client's hello, step and close -> busy; after the owner's connection closed "
         f"the other took over in {waited:.2f} s; then the first got busy until the other closed"
+    )
+
+
+def _sessions_apart(kit: Kit, other: Probe) -> str:
+    """A second client welcomed beside the first (a pool, §3 Ownership): its episode and the
+    owner's go on side by side, neither disturbing the other."""
+    assert kit.scenario is not None
+    expect(other.ask(Reset(kit.scenario.name, 2), kit.reset_timeout_s), Observation,
+           "the second session's reset")  # fmt: skip
+    expect(other.ask(Step(1, 0.0)), Observation, "the second session's step 1")
+    kit.step(2, 0.0)  # the owner's episode is untouched: its seq 2 is still the next
+    expect(other.ask(Step(2, 0.0)), Observation, "the second session's step 2")
+    expect(other.ask(Close()), Bye, "the second client's close")
+    kit.step(3, 0.0)
+    return (
+        "a second client was welcomed beside the first (a server of several sessions): both "
+        "episodes went on side by side, each in its own order"
     )
 
 

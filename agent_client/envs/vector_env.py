@@ -48,11 +48,10 @@ class RemoteVectorEnv(VectorEnv):  # type: ignore[type-arg]
         **options: OptionValue,
     ) -> None:
         """One `RemoteEnv` per address, all with the same scenario, reward, action space (see
-        `RemoteEnv`) and options."""
+        `RemoteEnv`) and options. An address may repeat where it serves a pool (``sim-server
+        --pool N``: one session per env); a single server refuses the second as busy."""
         if not addresses:
             raise ValueError("RemoteVectorEnv needs at least one server address")
-        if len(set(addresses)) != len(addresses):
-            raise ValueError("each server address may appear once (one simulation per server)")
         self.envs: list[RemoteEnv] = []
         try:
             for address in addresses:

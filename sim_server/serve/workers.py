@@ -64,13 +64,18 @@ class Worker:
     address: str
     process: subprocess.Popen[str] | None = None
     restarts: int = 0
+    ready: bool = False
+    """Printed its readiness line and has not exited since (as far as the supervisor saw)."""
 
 
 class Supervisor:
     """Starts, watches and stops the workers."""
 
-    def __init__(self, worker_argv: list[str], addresses: list[str]) -> None:
+    def __init__(
+        self, worker_argv: list[str], addresses: list[str], env: dict[str, str] | None = None
+    ) -> None:
         self.worker_argv = worker_argv
+        self.env = env
         self.workers = [Worker(i, address) for i, address in enumerate(addresses)]
         self._stop = threading.Event()
 
@@ -83,16 +88,20 @@ class Supervisor:
 
     def _spawn(self, worker: Worker) -> None:
         command = [sys.executable, "-m", "sim_server.cli", *self.worker_argv]
+        worker.ready = False
         worker.process = subprocess.Popen(
             [*command, "--bind", worker.address, "--exit-with-parent"],
             stdout=subprocess.PIPE,
             text=True,
+            env=self.env,
         )
 
     def _wait_ready(self, worker: Worker) -> str:
         assert worker.process is not None
         try:
-            return wait_for_line(worker.process, LISTENING, READY_TIMEOUT_S)
+            address = wait_for_line(worker.process, LISTENING, READY_TIMEOUT_S)
+            worker.ready = True
+            return address
         except NotReady as exc:
             raise RuntimeError(
                 f"worker {worker.index} ({worker.address}) did not become ready ({exc}); "
@@ -107,6 +116,7 @@ class Supervisor:
                 status = worker.process.poll()
                 if status is None or self._stop.is_set():
                     continue
+                worker.ready = False
                 log.warning(
                     "worker %d (%s) exited with status %s; restarting it",
                     worker.index,

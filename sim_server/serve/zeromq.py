@@ -100,7 +100,7 @@ class Server(StopFlag):
         else:
             reply = self.session.handle(parts[0], body[0])
             if self.session.owner == parts[0]:
-                fd = _source_fd(head)
+                fd = source_fd(head)
                 self._read_events()  # up to date: was this descriptor closed, or reused since?
                 if fd is not None and fd in self._closed_fds:
                     self.session.owner_disconnected()  # its connection is already gone
@@ -129,7 +129,7 @@ class Server(StopFlag):
         self._context.term()
 
 
-def _source_fd(frame: zmq.Frame) -> int | None:
+def source_fd(frame: zmq.Frame) -> int | None:
     """The file descriptor of the connection a frame came in on (None if unavailable)."""
     try:
         return int(frame.get(zmq.SRCFD))

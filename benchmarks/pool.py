@@ -1,0 +1,158 @@
+"""One address, a pool of simulators: what ``sim-server --pool N`` delivers, in one run.
+
+On one ``sim-server --pool N`` (SUMO, `cf` by default) and, for the hop's cost, one plain
+``sim-server``:
+
+* **one client**: a `RemoteEnv` stepping a fixed action, on the plain server and through the pool
+  (the front's extra hop on every step);
+* **independent drivers**: N processes, each an IDM driver on its own session of the pool (what
+  the simulators deliver to clients that need no time of their own);
+* **lock-step**: one `RemoteVectorEnv` over the pool's address N times;
+* **training**: ``agent-client train``'s learner over the pool's address N times, evaluations
+  off (issue 35's target: >= 0.6x the independent drivers).
+
+    python benchmarks/pool.py --pool 2 --seconds 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np
+
+from agent_client.drivers.idm import IDMDriver
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.envs.vector_env import RemoteVectorEnv
+from benchmarks.scaling import training
+from sim_server.serve.readiness import LISTENING, stop_process, wait_for_line
+
+
+def start_server(backend: str, *extra: str) -> tuple[subprocess.Popen[str], str]:
+    command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
+               "--backend", backend, "--log-level", "WARNING", *extra]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+    try:
+        return process, wait_for_line(process, LISTENING, 180.0)
+    except Exception:
+        stop_process(process)
+        raise
+
+
+def one_client(address: str, scenario: str, seconds: float) -> float:
+    """Steps/s of one env stepping a fixed action (new episodes as they end)."""
+    env = RemoteEnv(address, scenario, reward="ra3")
+    try:
+        env.reset(seed=0)
+        action = np.zeros(env.action_space.shape or (1,), np.float32)
+        steps, started = 0, time.monotonic()
+        while time.monotonic() - started < seconds:
+            _, _, terminated, truncated, _ = env.step(action)
+            steps += 1
+            if terminated or truncated:
+                env.reset()
+        return steps / (time.monotonic() - started)
+    finally:
+        env.close()
+
+
+def idm_driver(address: str, scenario: str, seconds: float, seed: int) -> int:
+    """Steps one IDM driver takes in `seconds` (run in a process of its own)."""
+    env = RemoteEnv(address, scenario, reward="ra3")
+    driver = IDMDriver()
+    try:
+        steps, started = 0, time.monotonic()
+        while time.monotonic() - started < seconds:
+            env.send_reset(seed=seed + steps)
+            obs = env.receive_reset_observation()
+            while not (obs.terminated or obs.truncated) and time.monotonic() - started < seconds:
+                env.send_command(*driver.act(obs))
+                obs, _ = env.receive_observation()
+                steps += 1
+        return steps
+    finally:
+        env.close()
+
+
+def independent(address: str, scenario: str, seconds: float, count: int) -> float:
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(count) as workers:
+        started = time.monotonic()
+        steps = workers.starmap(
+            idm_driver, [(address, scenario, seconds, seed) for seed in range(count)]
+        )
+        elapsed = time.monotonic() - started
+    return sum(steps) / max(seconds, elapsed - 2.0)  # the processes' start-up is not stepping
+
+
+def lock_step(address: str, scenario: str, seconds: float, count: int) -> float:
+    env = RemoteVectorEnv([address] * count, scenario, reward="ra3")
+    try:
+        env.reset(seed=0)
+        actions = {"acceleration": np.full((count, 1), 0.3), "lane_change": np.zeros(count)}
+        steps, started = 0, time.monotonic()
+        while time.monotonic() - started < seconds:
+            env.step(actions)
+            steps += count
+        return steps / (time.monotonic() - started)
+    finally:
+        env.close()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pool", type=int, default=2, help="simulators in the pool")
+    parser.add_argument("--seconds", type=float, default=30.0, help="per measurement")
+    parser.add_argument("--scenario", default="cf")
+    parser.add_argument("--backend", default="sumo")
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/pool.json")
+    args = parser.parse_args()
+
+    pool, pool_address = start_server(args.backend, "--pool", str(args.pool))
+    plain, plain_address = start_server(args.backend)
+    try:
+        row: dict[str, Any] = {
+            "one_client_plain": one_client(plain_address, args.scenario, args.seconds),
+            "one_client_pool": one_client(pool_address, args.scenario, args.seconds),
+        }
+        stop_process(plain)
+        row["independent_idm"] = independent(pool_address, args.scenario, args.seconds, args.pool)
+        row["lock_step"] = lock_step(pool_address, args.scenario, args.seconds, args.pool)
+        trained = training([pool_address] * args.pool, args.scenario, args.seconds)
+        row["training"] = trained["train_env_steps_per_s"]
+        row["training_updates_per_s"] = trained["updates_per_s"]
+    finally:
+        stop_process(plain)
+        stop_process(pool)
+    independent_rate = row["independent_idm"]
+    print(f"\n{args.backend}/{args.scenario}, pool of {args.pool}, {os.cpu_count()} cores, "
+          f"{platform.node()}, {args.seconds:g} s each:")  # fmt: skip
+    print("| clients | env steps/s | x |")
+    print("| --- | --- | --- |")
+    print(f"| one env, plain server | {row['one_client_plain']:.0f} | |")
+    print(f"| one env, through the pool | {row['one_client_pool']:.0f} | "
+          f"{row['one_client_pool'] / row['one_client_plain']:.2f} of plain |")  # fmt: skip
+    for name, label in (("independent_idm", f"{args.pool} independent IDM drivers"),
+                        ("lock_step", f"lock-step vector env of {args.pool}"),
+                        ("training", f"training over {args.pool} sessions")):  # fmt: skip
+        print(f"| {label} | {row[name]:.0f} | {row[name] / independent_rate:.2f} |")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    record = {"cores": os.cpu_count(), "pool": args.pool, "scenario": args.scenario,
+              "seconds": args.seconds, **row}  # fmt: skip
+    args.out.write_text(json.dumps(record, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
