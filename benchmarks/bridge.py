@@ -62,7 +62,7 @@ from protocol.messages import Hello, Observation, OptionValue, Reset, Step
 from protocol.transport.direct import DEFAULT_SPIN_US
 from protocol.version import PROTOCOL_VERSION
 from sim_server.backends.fake import FakeBackend
-from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 VARIANTS = (
     "inproc", "tcp", "ipc", "direct", "traci", "tcp-raw",

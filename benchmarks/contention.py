@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from agent_client.drivers.idm import IDMDriver
-from sim_server.serve.readiness import stop_process, wait_for_line
+from protocol.readiness import stop_process, wait_for_line
 
 READY = "neighbour ready"
 NEIGHBOURS = {

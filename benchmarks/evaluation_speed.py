@@ -34,7 +34,7 @@ from agent_client.errors import BridgeError
 from agent_client.training.eval_pool import EvaluationPool
 from agent_client.training.evaluator import EvaluationJob, Evaluator
 from benchmarks.learning import start_servers
-from sim_server.serve.readiness import stop_process
+from protocol.readiness import stop_process
 
 FIRST_SEED = 100_000
 """Held-out seeds, as the trainer's evaluations use (`TrainConfig.eval_seed`)."""

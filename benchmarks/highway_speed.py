@@ -40,7 +40,7 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.transport import ZmqChannel
 from protocol.messages import Observation, OptionValue, Reset, Step
 from sim_server.backends.highway import HighwayBackend
-from sim_server.serve.readiness import LISTENING, wait_for_line
+from protocol.readiness import LISTENING, wait_for_line
 
 StepFn = Callable[[int, float, int], Observation]
 ResetFn = Callable[[int], Observation]

@@ -47,7 +47,7 @@ from agent_client.training.config import (
 )
 from agent_client.training.progress import Profile
 from agent_client.training.trainer import QuietReporter, Trainer
-from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 
 def start_servers(

@@ -88,7 +88,7 @@ from agent_client.evaluation.traffic_figures import (
 )
 from protocol.messages import MultiObservation, Observation, OptionValue
 from sim_server.backends.sumo.scenarios import RING_SPEED_LIMIT, RingOptions
-from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 RESULTS = ROOT / "benchmarks" / "results"
 READY_TIMEOUT_S = 60.0

@@ -36,7 +36,7 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
 from benchmarks.scaling import training
-from sim_server.serve.readiness import LISTENING, stop_process, wait_for_line
+from protocol.readiness import LISTENING, stop_process, wait_for_line
 
 
 def start_server(backend: str, *extra: str) -> tuple[subprocess.Popen[str], str]:

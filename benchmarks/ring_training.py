@@ -37,7 +37,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from sim_server.serve.readiness import LISTENING, stop_process, wait_for_line
+from protocol.readiness import LISTENING, stop_process, wait_for_line
 
 RING_OPTIONS = {
     "warmup": 300,

@@ -33,7 +33,7 @@ from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import UsageError
 from agent_client.evaluation.evaluate import evaluate_driver
 from agent_client.evaluation.summaries import summarise
-from sim_server.serve.readiness import LISTENING, stop_process, wait_for_line
+from protocol.readiness import LISTENING, stop_process, wait_for_line
 
 SCENARIOS = ("merge", "exit", "lanedrop")
 MODELS = ("idm+mobil", "sumo", "idm")

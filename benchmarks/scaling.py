@@ -35,7 +35,7 @@ import numpy as np
 from agent_client.envs.vector_env import RemoteVectorEnv
 from agent_client.training.config import TrainConfig, apply_overrides
 from agent_client.training.trainer import QuietReporter, Trainer
-from sim_server.serve.readiness import LISTENING, NotReady, wait_for_line
+from protocol.readiness import LISTENING, NotReady, wait_for_line
 
 
 def start_workers(count: int, backend: str) -> tuple[subprocess.Popen[str], list[str]]:

@@ -38,7 +38,7 @@ import torch
 from agent_client.training.config import TrainConfig, apply_overrides, parse_assignment
 from agent_client.training.progress import Profile
 from agent_client.training.trainer import QuietReporter, Trainer
-from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 RESULTS = ROOT / "benchmarks" / "results" / "shared_policy.json"
 MEASURE_AFTER_UPDATES = 100

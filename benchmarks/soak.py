@@ -38,7 +38,7 @@ from agent_client.errors import ServerError, ServerTimeout
 from agent_client.transport import ZmqChannel
 from protocol.messages import Close, Hello, Observation, Reset, Step
 from protocol.version import PROTOCOL_VERSION
-from sim_server.serve.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 CRASHING_LEARNER = """
 import sys

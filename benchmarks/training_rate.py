@@ -54,7 +54,7 @@ def main() -> int:
 
     from agent_client.training.config import TrainConfig, apply_overrides
     from agent_client.training.trainer import QuietReporter, Trainer
-    from sim_server.serve.readiness import LISTENING, stop_process, wait_for_line
+    from protocol.readiness import LISTENING, stop_process, wait_for_line
 
     class Clock(QuietReporter):  # type: ignore[misc]
         def __init__(self) -> None:

@@ -28,7 +28,7 @@ from sim_server.backends.sumo.gui import DEFAULT_DELAY_MS, DEFAULT_SPAN_M, GuiVi
 from sim_server.errors import UsageError
 from sim_server.serve.direct import DirectServer
 from sim_server.serve.lifecycle import stop_with_parent
-from sim_server.serve.readiness import format_listening
+from protocol.readiness import format_listening
 from sim_server.serve.zeromq import Server
 from sim_server.session import DEFAULT_SESSION_TIMEOUT_S, Session
 

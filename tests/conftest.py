@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_server.serve import readiness
+from protocol import readiness
 
 READY_TIMEOUT_S = 60.0
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from collections import deque
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -15,6 +17,7 @@ from protocol.transport.endpoint import DEFAULT_ADDRESS
 
 if TYPE_CHECKING:
     from agent_client.training.config import TrainConfig
+    from agent_client.training.trainer import Trainer
 
 
 def add_parser(commands: Commands) -> None:
@@ -96,6 +99,15 @@ def add_parser(commands: Commands) -> None:
         help='with --sampling ray: "auto" (this machine\'s Ray cluster) or ray://HOST:10001; '
         "default: start a local Ray",
     )
+    train.add_argument(
+        "--simulators",
+        type=int,
+        metavar="N",
+        help="with --sampling ray: N sampling workers, each starting a simulator of its own "
+        "where Ray places it (--set simulator_args=... its sim-server options; default "
+        "--backend sumo), stopped with the run; without --server a local one answers the "
+        "handshake and the evaluations",
+    )
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=run)
 
@@ -134,6 +146,7 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         "stop_when_converged": args.stop_when_converged,
         "sampling": args.sampling,
         "ray_address": args.ray_address,
+        "simulators": args.simulators,
         "max_minutes": args.minutes,
         "egos": args.egos,
     }
@@ -185,8 +198,6 @@ class BarReporter:
 
 def run(args: argparse.Namespace) -> int:
     from agent_client.training.config import TrainConfig, apply_overrides
-    from agent_client.training.plan import plan_lines
-    from agent_client.training.plots import plot_training
     from agent_client.training.trainer import Trainer
 
     if args.resume is not None:
@@ -199,21 +210,44 @@ def run(args: argparse.Namespace) -> int:
         config = build_config(args)
         out = args.out or Path("runs") / f"{config.label}-{config.reward}-{config.seed}"
     reporter = BarReporter(config.episodes, 0, args.quiet)
-    servers = args.server or [DEFAULT_ADDRESS]
-    trainer = Trainer(
-        config,
-        servers,
-        out,
-        args.timeout,
-        reporter,
-        args.retry_for,
-        args.eval_server,
-        reset_timeout_s=args.reset_timeout,
-    )
+    with contextlib.ExitStack() as stack:
+        servers, eval_servers = args.server or [DEFAULT_ADDRESS], args.eval_server
+        if config.simulators and not args.server:  # the workers start theirs; the rest here
+            servers = [stack.enter_context(_own_simulator(config.simulator_args))]
+            if config.eval_every > 0 and not eval_servers:
+                evaluations = _own_simulator(config.simulator_args + " --idle-priority")
+                eval_servers = [stack.enter_context(evaluations)]
+        trainer = Trainer(
+            config,
+            servers,
+            out,
+            args.timeout,
+            reporter,
+            args.retry_for,
+            eval_servers,
+            reset_timeout_s=args.reset_timeout,
+        )
+        return _train(trainer, reporter, out, resumed=args.resume is not None)
+
+
+@contextlib.contextmanager
+def _own_simulator(args: str) -> Iterator[str]:
+    """The address of a simulator this process starts for itself (for the handshake, or the
+    evaluations, of a run whose sampling workers start their own), stopped when done."""
+    from agent_client.training.simulators import OwnSimulator
+
+    with OwnSimulator(args) as simulator:
+        yield simulator.address
+
+
+def _train(trainer: Trainer, reporter: BarReporter, out: Path, resumed: bool) -> int:
+    from agent_client.training.plan import plan_lines
+    from agent_client.training.plots import plot_training
+
     try:
         for line in plan_lines(trainer, out):
             reporter.message(line)
-        progress = trainer.run(resume=args.resume is not None)
+        progress = trainer.run(resume=resumed)
     finally:
         reporter.close()
         trainer.close()  # closes the collector too (Ray's workers, if any)

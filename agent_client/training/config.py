@@ -170,6 +170,11 @@ class TrainConfig:
     ray_address: str = ""
     """sampling = ray: "" starts a local Ray, "auto" joins this machine's Ray cluster,
     ray://HOST:10001 one through Ray Client."""
+    simulators: int = 0
+    """sampling = ray: N sampling workers, each starting a simulator of its own beside it
+    (`simulator_args`) wherever Ray places it, stopped with it; 0: one worker per server."""
+    simulator_args: str = "--backend sumo"
+    """The sim-server command line of the simulators the learner starts (without --bind)."""
     learner: TD3Config = field(default_factory=lambda: RECOMMENDED_LEARNER)
     """Learner hyper-parameters (default: `RECOMMENDED_LEARNER`)."""
 
@@ -182,6 +187,20 @@ class TrainConfig:
             )
         if self.residual_burn_in < 0:
             raise UsageError(f"residual_burn_in must be >= 0, got {self.residual_burn_in}")
+
+    def _check_sampling(self) -> None:
+        if self.simulators < 0:
+            raise UsageError(f"simulators must be at least 0, got {self.simulators}")
+        if self.simulators and self.sampling != "ray":
+            raise UsageError(
+                f"simulators {self.simulators} needs sampling = ray: Ray starts them beside its "
+                "sampling workers (--sampling ray)"
+            )
+        if self.egos > 1 and self.sampling != "local":
+            raise UsageError(
+                f"egos {self.egos} needs sampling = local: the Ray sampling workers drive one "
+                "ego each (train many egos without --sampling ray)"
+            )
 
     def __post_init__(self) -> None:
         from agent_client.rl.features import FEATURE_SETS
@@ -222,11 +241,7 @@ class TrainConfig:
         ):
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if self.egos > 1 and self.sampling != "local":
-            raise UsageError(
-                f"egos {self.egos} needs sampling = local: the Ray sampling workers drive one "
-                "ego each (train many egos without --sampling ray)"
-            )
+        self._check_sampling()
         if self.eval_budget is not None and not self.eval_budget > 0:
             raise UsageError(f"eval_budget must be > 0 (or None: no limit), got {self.eval_budget}")
         if self.max_minutes is not None and not self.max_minutes > 0:

@@ -57,12 +57,15 @@ class RayCollector:
         sync_every: int = 500,
         ray_address: str = "",
         hand_over: Sequence[RemoteEnv] = (),
+        simulators: int = 0,
     ) -> None:
         """`spec` is every worker's (its address replaced by each of `servers`);
         `policy_state` the learner's current policy, `settings` its exploration schedule.
 
         `hand_over`: this process's own connections to `servers`, closed when sampling starts
         so that each worker can take its server (a server serves one client at a time).
+        `simulators`: N workers that each start a simulator of their own (`spec`'s
+        ``simulator_args``) wherever Ray places them, in place of one worker per server.
         """
         try:
             import ray
@@ -70,7 +73,9 @@ class RayCollector:
             raise UsageError("sampling = ray needs Ray: pip install 'av-bridge[ray]'") from exc
         self._ray = ray
         self.spec = spec
-        self.servers = list(servers)
+        self.own_simulators = simulators > 0
+        own = [f"worker {i}'s own simulator" for i in range(simulators)]
+        self.servers = own or list(servers)
         self.policy_state = policy_state
         self.settings = settings
         self.next_seed = next_seed
@@ -183,9 +188,13 @@ class RayCollector:
         )
         first_seed = self.next_seed()
         n = len(self.servers)
+        specs = (
+            [self.spec] * n
+            if self.own_simulators
+            else [replace(self.spec, address=address) for address in self.servers]
+        )
         self.workers = [
-            actor.remote(replace(self.spec, address=address), index, n, first_seed)
-            for index, address in enumerate(self.servers)
+            actor.remote(spec, index, n, first_seed) for index, spec in enumerate(specs)
         ]
         self._worker_versions = [0] * n
 
@@ -244,6 +253,7 @@ def ray_collector(
         retry_for_s=retry_for_s,
         residual=residual,
         reset_timeout_s=env.reset_timeout_s,
+        simulator_args=config.simulator_args if config.simulators else None,
     )
 
     def settings() -> Settings:  # the schedule of `Trainer._choose`
@@ -253,5 +263,5 @@ def ray_collector(
     return RayCollector(
         spec, vec.addresses, policy_state, settings, next_seed,
         chunk_steps=config.sampling_chunk, sync_every=config.policy_sync_every,
-        ray_address=config.ray_address, hand_over=vec.envs,
+        ray_address=config.ray_address, hand_over=vec.envs, simulators=config.simulators,
     )  # fmt: skip

@@ -34,6 +34,7 @@ from agent_client.training.collect import (
     Transition,
 )
 from agent_client.training.exploration import WarmupDriver
+from agent_client.training.simulators import OwnSimulator
 from protocol.messages import OptionValue
 
 
@@ -64,6 +65,9 @@ class WorkerSpec:
     residual: str = ""
     """The trainer's `ActionScale.residual`: what the actor's output corrects."""
     reset_timeout_s: float = RESET_TIMEOUT_S
+    simulator_args: str | None = None
+    """Start a simulator of its own with this sim-server command line (`OwnSimulator`) and
+    drive it, not `address`."""
 
 
 @dataclass(frozen=True)
@@ -143,10 +147,18 @@ class SamplingWorker:
     def __init__(self, spec: WorkerSpec, index: int, stride: int, first_seed: int) -> None:
         self.spec = spec
         self.index = index
-        self.env = RemoteEnv(
-            spec.address, spec.scenario, reward=spec.reward, timeout_s=spec.timeout_s,
-            reset_timeout_s=spec.reset_timeout_s, **spec.options,
-        )  # fmt: skip
+        own = spec.simulator_args is not None
+        self.simulator = OwnSimulator(spec.simulator_args or "") if own else None
+        address = self.simulator.address if self.simulator is not None else spec.address
+        try:
+            self.env = RemoteEnv(
+                address, spec.scenario, reward=spec.reward, timeout_s=spec.timeout_s,
+                reset_timeout_s=spec.reset_timeout_s, **spec.options,
+            )  # fmt: skip
+        except BaseException:
+            if self.simulator is not None:
+                self.simulator.close()
+            raise
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
         lanes = lane_choice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule, spec.residual)
         interval = float(spec.options.get("decision_interval", DECISION_INTERVAL))
@@ -201,7 +213,12 @@ class SamplingWorker:
         self.local.drop_episodes()
 
     def close(self) -> None:
-        self.env.close()
+        """Say goodbye to the server; stop the simulator it started, if any."""
+        try:
+            self.env.close()
+        finally:
+            if self.simulator is not None:
+                self.simulator.close()
 
     def _next_seed(self) -> int:
         return next(self._seeds)

@@ -48,7 +48,7 @@ from protocol.messages import Error
 from protocol.transport.security import ServerCredentials, start_authenticator
 from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS, bind_router, remove_ipc_file
 from sim_server.serve.lifecycle import StopFlag, stop_with_parent
-from sim_server.serve.readiness import format_listening
+from protocol.readiness import format_listening
 from sim_server.serve.workers import Supervisor, Worker, without_options
 from sim_server.serve.zeromq import POLL_INTERVAL_MS, source_fd
 from sim_server.session import DEFAULT_SESSION_TIMEOUT_S

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from types import FrameType
 
 from protocol.transport.endpoint import Endpoint, parse_endpoint
-from sim_server.serve.readiness import LISTENING, NotReady, format_listening, wait_for_line
+from protocol.readiness import LISTENING, NotReady, format_listening, wait_for_line
 
 log = logging.getLogger("sim_server")
 

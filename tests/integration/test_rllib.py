@@ -7,8 +7,8 @@ from typing import Any
 
 import pytest
 
-from agent_client.errors import UsageError
 from tests.conftest import sim_server
+from tests.integration.test_own_simulators import simulators_under, wait_until_gone
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 rllib = pytest.importorskip("agent_client.rllib")
@@ -32,9 +32,33 @@ def test_env_runner_and_env_index_choose_the_server(
     assert rllib.server_index(worker, env, per_runner, servers) == expected
 
 
-def test_env_config_without_servers_is_refused() -> None:
-    with pytest.raises(UsageError, match="servers"):
-        rllib.make_env({"scenario": "cf"})
+@pytest.mark.sumo
+def test_without_servers_each_env_runs_a_simulator_of_its_own(
+    local_ray: None, scenario_cache: Path
+) -> None:
+    from ray.rllib.algorithms.ppo import PPOConfig
+
+    # The cache folder on their command lines tells this test's simulators from any other.
+    env_config = {"scenario": "cf", "max_episode_time": 10.0,
+                  "simulator_args": f"--backend sumo --cache-dir {scenario_cache}"}  # fmt: skip
+    config = (
+        PPOConfig()
+        .environment(rllib.register(), env_config=env_config)
+        .env_runners(num_env_runners=2, num_envs_per_env_runner=1)
+        .training(train_batch_size_per_learner=400, minibatch_size=100, num_epochs=1)
+        .rl_module(model_config={"fcnet_hiddens": [16]})
+    )
+    algo = config.build_algo()
+    try:
+        result = algo.train()
+        used = [a for a in algo.env_runner_group.foreach_env_runner(addresses) if a]
+        assert len(simulators_under(scenario_cache)) == 2
+    finally:
+        algo.stop()
+    assert len({address for runner in used for address in runner}) == 2  # one each
+    assert all(address.startswith("ipc://") for runner in used for address in runner)
+    assert result["env_runners"]["num_env_steps_sampled_lifetime"] >= 400
+    wait_until_gone(scenario_cache, 60.0)
 
 
 def addresses(runner: Any) -> list[str] | None:

@@ -1,10 +1,11 @@
-"""Child processes: waiting for a readiness line (``listening on ADDRESS``) with a deadline,
-and stopping them with a grace period.
+"""A server's readiness line (``listening on ADDRESS``), waited for with a deadline, and
+stopping a child process with a grace period: how either side launches a server.
 
 A child's stdout is read by a daemon thread into a queue, so a wait never blocks past its
 deadline, two lines that arrive in one read are both seen (a selector on a buffered text stream
-misses the second), and a chatty child never fills its pipe. Used by the ``--workers``
-supervisor, the tests and the benchmarks: one implementation.
+misses the second), and a chatty child never fills its pipe. Used by the ``--workers`` and
+``--pool`` supervisors, a learner that starts simulators of its own, the tests and the
+benchmarks: one implementation.
 """
 
 from __future__ import annotations

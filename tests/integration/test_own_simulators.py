@@ -1,0 +1,127 @@
+"""Simulators the learner starts for itself: one beside each Ray sampling worker
+(``agent-client train --sampling ray --simulators N``), gone with the run however it ends."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.training.run_log import read_rows
+from agent_client.training.simulators import OwnSimulator, SimulatorFailed
+from tests.integration.test_train import wait_for_episodes
+from tests.integration.test_workers import alive
+
+pytestmark = [pytest.mark.sumo, pytest.mark.slow]
+
+
+def simulators_under(folder: Path) -> list[int]:
+    """Live sim-server processes whose address lies under `folder` (their --bind names it)."""
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            words = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"sim_server.cli" in words and any(str(folder).encode() in w for w in words):
+            pid = int(cmdline.parent.name)
+            if alive(pid):
+                found.append(pid)
+    return found
+
+
+def wait_until_gone(folder: Path, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while simulators_under(folder):
+        assert time.monotonic() < deadline, (
+            f"simulators outlived the run: {simulators_under(folder)}"
+        )
+        time.sleep(0.2)
+
+
+@pytest.fixture
+def short_tmp() -> Iterator[Path]:
+    """A temporary folder with a short path: Ray's sockets under it must fit AF_UNIX's 107."""
+    folder = Path(tempfile.mkdtemp(prefix="avb-", dir="/tmp"))
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def train(tmp_path: Path, *extra: str) -> subprocess.Popen[str]:
+    """``agent-client train --sampling ray --simulators 2`` with its temporary files (the
+    simulators' sockets) under `tmp_path`."""
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    command = [
+        sys.executable, "-m", "agent_client", "train", "--sampling", "ray", "--simulators", "2",
+        "--out", str(tmp_path / "run"), "--quiet", "--decision-interval", "1.0",
+        "--set", "eval_every=0", "--set", "warmup_policy=idm", "--set", "checkpoint_every=1",
+        *extra,
+    ]  # fmt: skip
+    return subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+
+
+def test_an_own_simulator_serves_and_stops(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with OwnSimulator("--backend fake") as simulator:
+        assert simulator.address.startswith(f"ipc://{tmp_path}")
+        env = RemoteEnv(simulator.address, "cf")
+        env.reset(seed=1)
+        env.close()
+        assert simulators_under(tmp_path) == [simulator.process.pid]
+    assert simulators_under(tmp_path) == []
+    assert list(tmp_path.iterdir()) == []  # its socket's folder removed
+    with pytest.raises(SimulatorFailed, match="did not start"):
+        OwnSimulator("--backend nope")
+
+
+@pytest.mark.ray
+def test_ray_starts_the_simulators_and_they_stop_with_the_run(short_tmp: Path) -> None:
+    tmp_path = short_tmp
+    process = train(tmp_path, "--episodes", "6")
+    seen: set[int] = set()
+    try:
+        while process.poll() is None:  # the run's simulators: 2 beside the workers, 1 here
+            seen.update(simulators_under(tmp_path))
+            time.sleep(0.2)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 0, stderr
+    assert len(seen) == 3
+    assert len(read_rows(tmp_path / "run" / "episodes.csv")) == 6
+    wait_until_gone(tmp_path, 30.0)
+
+
+@pytest.mark.ray
+@pytest.mark.parametrize("ending", [signal.SIGINT, signal.SIGKILL])
+def test_the_simulators_do_not_outlive_a_stopped_or_killed_learner(
+    short_tmp: Path, ending: signal.Signals
+) -> None:
+    tmp_path = short_tmp
+    process = train(tmp_path, "--episodes", "1000")
+    try:
+        wait_for_episodes(tmp_path / "run" / "episodes.csv", 2, timeout_s=240)
+        assert len(simulators_under(tmp_path)) == 3
+        process.send_signal(ending)
+        process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    if ending == signal.SIGINT:  # stopped: checkpointed, as any run
+        assert process.returncode == 0
+        assert (tmp_path / "run" / "checkpoint.pt").exists()
+    wait_until_gone(tmp_path, 60.0)
