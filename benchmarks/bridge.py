@@ -59,10 +59,10 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.transport import connect
 from protocol.codec import decode_reply, encode
 from protocol.messages import Hello, Observation, OptionValue, Reset, Step
+from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 from protocol.transport.direct import DEFAULT_SPIN_US
 from protocol.version import PROTOCOL_VERSION
 from sim_server.backends.fake import FakeBackend
-from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 VARIANTS = (
     "inproc", "tcp", "ipc", "direct", "traci", "tcp-raw",

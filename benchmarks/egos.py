@@ -65,9 +65,9 @@ from protocol.messages import (
     Reset,
     Step,
 )
+from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 from protocol.version import PROTOCOL_VERSION
 from sim_server.backends.sumo.backend import SumoBackend
-from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 RESULTS = ROOT / "benchmarks" / "results" / "egos.json"
 METRES_PER_VEHICLE = 10.0

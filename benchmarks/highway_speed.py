@@ -39,8 +39,8 @@ sys.path.insert(0, str(ROOT))
 from agent_client.drivers.idm import IDMDriver
 from agent_client.transport import ZmqChannel
 from protocol.messages import Observation, OptionValue, Reset, Step
-from sim_server.backends.highway import HighwayBackend
 from protocol.readiness import LISTENING, wait_for_line
+from sim_server.backends.highway import HighwayBackend
 
 StepFn = Callable[[int, float, int], Observation]
 ResetFn = Callable[[int], Observation]

@@ -87,8 +87,8 @@ from agent_client.evaluation.traffic_figures import (
     stopped_share,
 )
 from protocol.messages import MultiObservation, Observation, OptionValue
-from sim_server.backends.sumo.scenarios import RING_SPEED_LIMIT, RingOptions
 from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from sim_server.backends.sumo.scenarios import RING_SPEED_LIMIT, RingOptions
 
 RESULTS = ROOT / "benchmarks" / "results"
 READY_TIMEOUT_S = 60.0

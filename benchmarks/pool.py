@@ -3,8 +3,8 @@
 On one ``sim-server --pool N`` (SUMO, `cf` by default) and, for the hop's cost, one plain
 ``sim-server``:
 
-* **one client**: a `RemoteEnv` stepping a fixed action, on the plain server and through the pool
-  (the front's extra hop on every step);
+* **one client**: an IDM driver, on the plain server and through the pool (the front's extra
+  hop on every step);
 * **independent drivers**: N processes, each an IDM driver on its own session of the pool (what
   the simulators deliver to clients that need no time of their own);
 * **lock-step**: one `RemoteVectorEnv` over the pool's address N times;
@@ -48,23 +48,6 @@ def start_server(backend: str, *extra: str) -> tuple[subprocess.Popen[str], str]
     except Exception:
         stop_process(process)
         raise
-
-
-def one_client(address: str, scenario: str, seconds: float) -> float:
-    """Steps/s of one env stepping a fixed action (new episodes as they end)."""
-    env = RemoteEnv(address, scenario, reward="ra3")
-    try:
-        env.reset(seed=0)
-        action = np.zeros(env.action_space.shape or (1,), np.float32)
-        steps, started = 0, time.monotonic()
-        while time.monotonic() - started < seconds:
-            _, _, terminated, truncated, _ = env.step(action)
-            steps += 1
-            if terminated or truncated:
-                env.reset()
-        return steps / (time.monotonic() - started)
-    finally:
-        env.close()
 
 
 def idm_driver(address: str, scenario: str, seconds: float, seed: int) -> int:
@@ -123,8 +106,10 @@ def main() -> int:
     plain, plain_address = start_server(args.backend)
     try:
         row: dict[str, Any] = {
-            "one_client_plain": one_client(plain_address, args.scenario, args.seconds),
-            "one_client_pool": one_client(pool_address, args.scenario, args.seconds),
+            "one_client_plain": idm_driver(plain_address, args.scenario, args.seconds, 0)
+            / args.seconds,
+            "one_client_pool": idm_driver(pool_address, args.scenario, args.seconds, 0)
+            / args.seconds,
         }
         stop_process(plain)
         row["independent_idm"] = independent(pool_address, args.scenario, args.seconds, args.pool)
@@ -140,8 +125,8 @@ def main() -> int:
           f"{platform.node()}, {args.seconds:g} s each:")  # fmt: skip
     print("| clients | env steps/s | x |")
     print("| --- | --- | --- |")
-    print(f"| one env, plain server | {row['one_client_plain']:.0f} | |")
-    print(f"| one env, through the pool | {row['one_client_pool']:.0f} | "
+    print(f"| one IDM driver, plain server | {row['one_client_plain']:.0f} | |")
+    print(f"| one IDM driver, through the pool | {row['one_client_pool']:.0f} | "
           f"{row['one_client_pool'] / row['one_client_plain']:.2f} of plain |")  # fmt: skip
     for name, label in (("independent_idm", f"{args.pool} independent IDM drivers"),
                         ("lock_step", f"lock-step vector env of {args.pool}"),

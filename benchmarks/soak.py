@@ -37,8 +37,8 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.errors import ServerError, ServerTimeout
 from agent_client.transport import ZmqChannel
 from protocol.messages import Close, Hello, Observation, Reset, Step
-from protocol.version import PROTOCOL_VERSION
 from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from protocol.version import PROTOCOL_VERSION
 
 CRASHING_LEARNER = """
 import sys

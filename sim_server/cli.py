@@ -18,6 +18,7 @@ from types import FrameType
 from typing import NoReturn
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES
+from protocol.readiness import format_listening
 from protocol.transport.direct import DEFAULT_SPIN_US
 from protocol.transport.endpoint import DEFAULT_ADDRESS, Endpoint, parse_endpoint
 from protocol.transport.security import ServerCredentials, generate_keys, load_key_pair
@@ -28,7 +29,6 @@ from sim_server.backends.sumo.gui import DEFAULT_DELAY_MS, DEFAULT_SPAN_M, GuiVi
 from sim_server.errors import UsageError
 from sim_server.serve.direct import DirectServer
 from sim_server.serve.lifecycle import stop_with_parent
-from protocol.readiness import format_listening
 from sim_server.serve.zeromq import Server
 from sim_server.session import DEFAULT_SESSION_TIMEOUT_S, Session
 

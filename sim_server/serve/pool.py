@@ -45,10 +45,10 @@ from protocol.codec import (
 )
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import Error
+from protocol.readiness import format_listening
 from protocol.transport.security import ServerCredentials, start_authenticator
 from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS, bind_router, remove_ipc_file
 from sim_server.serve.lifecycle import StopFlag, stop_with_parent
-from protocol.readiness import format_listening
 from sim_server.serve.workers import Supervisor, Worker, without_options
 from sim_server.serve.zeromq import POLL_INTERVAL_MS, source_fd
 from sim_server.session import DEFAULT_SESSION_TIMEOUT_S
@@ -192,14 +192,15 @@ class PoolServer(StopFlag):
             return
         peer, frame = parts[0], body[0]
         fd = source_fd(head)
-        self._read_events()  # up to date: was this descriptor closed, or reused since?
+        # The news of a disconnection is read after the requests that came before it (`serve`):
+        # a request from a connection already reported closed leaves its simulator free.
         gone = fd is not None and fd in self._closed_fds
         route = self._routes.get(peer)
         if route is not None:
             route.fd, route.connected, route.last_seen = fd, not gone, time.monotonic()
-        if route is not None and route.child is not None and route.trying is None:
-            self._forward(route, envelope[1:], frame)  # the hot path: no decoding
-            return
+            if route.child is not None and route.trying is None:
+                self._forward(route, envelope[1:], frame)  # the hot path: no decoding
+                return
         if route is not None and route.trying is not None:
             route.request = [*envelope, frame]  # a retry while being placed: answer this one
             return

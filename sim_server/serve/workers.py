@@ -18,8 +18,8 @@ import time
 from dataclasses import dataclass
 from types import FrameType
 
-from protocol.transport.endpoint import Endpoint, parse_endpoint
 from protocol.readiness import LISTENING, NotReady, format_listening, wait_for_line
+from protocol.transport.endpoint import Endpoint, parse_endpoint
 
 log = logging.getLogger("sim_server")
 
