@@ -9,8 +9,9 @@ files does.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -92,7 +93,12 @@ class ActionScale:
 
 
 class PolicyDriver:
-    """Drives with a trained policy (greedy), asking for lane changes only when they can happen."""
+    """Drives with a trained policy (greedy), asking for lane changes only when they can happen.
+
+    A residual policy's jerk limit (and its reference's) steps over the decision interval of the
+    road it drives, as IDM + MOBIL's own: the one it was trained on until two observations have
+    shown it (a network whose SUMO step is 1 s decides every second: with a 0.1 s limit there,
+    an ego braked hard at a junction would recover a tenth as fast and stop)."""
 
     name = "policy"
 
@@ -103,8 +109,14 @@ class PolicyDriver:
         self.features = features
         self.scale = scale
         self.lanes = lanes
+        self._last_time = -math.inf
 
     def act(self, obs: Observation) -> tuple[float, int]:
+        if obs.seq > 0 and obs.time > self._last_time:
+            interval = obs.time - self._last_time
+            if abs(interval - self.scale.interval) > 1e-9:
+                self.scale = replace(self.scale, interval=interval)
+        self._last_time = obs.time
         u, lane = self.policy.act(self.features(obs), self.lanes.mask(obs))
         return self.scale.to_env(u, obs), LANE_COMMANDS[lane]
 

@@ -92,6 +92,26 @@ def test_between_two_lane_decisions_a_saved_policy_keeps_its_lane(tmp_path: Path
     assert [driver.act(replace(middle_lane, seq=seq))[1] for seq in range(1, 10)] == [0] * 9
 
 
+def test_a_residual_policy_steps_its_jerk_limit_over_the_interval_it_is_driven_at(
+    tmp_path: Path,
+) -> None:
+    # Trained at 0.1 s, driven on a network whose SUMO step is 1 s: after a hard brake (a
+    # junction's speed) it recovers at 5 m/s^3 over the second it has, not over 0.1 s.
+    features, lanes = FeatureMap("road"), LaneChoice(1, 1)
+    agent = Agent(features.dim, 1, TD3Config(compile=False), seed=3)
+    scale = ActionScale(-6.0, 3.0, residual="idm+mobil", interval=0.1)
+    save_policy(tmp_path / "p.pt", agent.policy_state_dict(), features, scale, lanes)
+    driver = load_policy_driver(tmp_path / "p.pt")
+    braked = Ego(8.0, -6.0, 0, 1, 120.0, 16.7)
+    driven = [
+        driver.act(make_observation(seq=seq, time=30.0 + seq, ego=braked, neighbours=free_road()))
+        for seq in range(3)
+    ]
+    assert driven[0][0] <= -6.0 + JERK_LIMIT * 0.1 + 1e-9  # the trained interval, until seen
+    assert driver.scale.interval == pytest.approx(1.0)
+    assert driven[2][0] > -6.0 + JERK_LIMIT * 0.1 + 0.5  # a second's worth of recovery
+
+
 def test_a_policy_of_an_older_feature_set_is_refused_with_the_reason(tmp_path: Path) -> None:
     features = FeatureMap("lc")
     agent = Agent(features.dim + 1, 3, TD3Config(compile=False), seed=3)  # "lc" lost a feature
