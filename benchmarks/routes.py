@@ -8,6 +8,7 @@ the braking imposed on the new follower) and writes JSON.
 
     python benchmarks/routes.py --episodes 50
     python benchmarks/routes.py --scenario merge --policy runs/roads/policy.pt --episodes 50
+    python benchmarks/routes.py --sumocfg runs/grid/grid.sumocfg --ego-route ego   # your network
 
 The seeds start at 200,000 (`agent-client evaluate`'s): no training run or its evaluations
 drove them. This is a measurement, not a test: minutes per driver and scenario.
@@ -47,6 +48,10 @@ def main() -> int:
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=EVALUATION_SEED)
     parser.add_argument(
+        "--sumocfg", type=Path, help="drive this network instead (its stem is the scenario)"
+    )
+    parser.add_argument("--ego-route", default="ego", help="with --sumocfg: the ego's route id")
+    parser.add_argument(
         "--out", type=Path, default=ROOT / "runs" / "benchmark" / "routes.json", help="JSON file"
     )
     args = parser.parse_args()
@@ -57,9 +62,13 @@ def main() -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     seeds = list(range(args.seed, args.seed + args.episodes))
+    network: list[str] = []
+    if args.sumocfg is not None:
+        network = ["--sumocfg", str(args.sumocfg), "--ego-route", args.ego_route]
+        args.scenario = [args.sumocfg.stem]
     server = subprocess.Popen(
         [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
-         "--log-level", "WARNING"],
+         "--log-level", "WARNING", *network],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )  # fmt: skip
     results: dict[str, dict[str, Any]] = {}
