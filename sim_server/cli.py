@@ -15,7 +15,7 @@ import signal
 import sys
 from pathlib import Path
 from types import FrameType
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES
 from protocol.readiness import format_listening
@@ -51,7 +51,12 @@ installs it)."""
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argparse parser whose usage errors are one line (``--help`` lists the options)."""
+    """An argparse parser whose usage errors are one line (``--help`` lists the options), and
+    which takes no abbreviated option: ``--workers`` and ``--pool`` hand their command line on
+    to the servers they start, without the options that are theirs, named in full."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **{"allow_abbrev": False, **kwargs})
 
     def error(self, message: str) -> NoReturn:
         self.exit(USAGE_STATUS, f"{self.prog}: error: {message}\n")
@@ -404,6 +409,11 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise UsageError(f"--pool {args.pool}: must be at least 1")
     if args.pool > 1 and args.workers > 1:
         raise UsageError("--pool and --workers: choose one (a pool serves N on one address)")
+    if args.pool > 1 and (args.traci_port is not None or args.gui):
+        raise UsageError(
+            f"--pool {args.pool}: each simulator of a pool runs SUMO of its own; --traci-port "
+            "and --gui attach one"
+        )
     if args.pool > 1 and args.bind.startswith("direct://"):
         raise UsageError(
             f"--pool {args.pool}: a pool serves over tcp:// or ipc:// (ZeroMQ); over direct:// "

@@ -47,7 +47,10 @@ def wait_for_line(process: subprocess.Popen[str], prefix: str, timeout_s: float)
 
 @contextmanager
 def sim_server(
-    *args: str, cache_dir: Path | None = None, bind: str = "tcp://127.0.0.1:0"
+    *args: str,
+    cache_dir: Path | None = None,
+    bind: str = "tcp://127.0.0.1:0",
+    ready_timeout_s: float = READY_TIMEOUT_S,
 ) -> Iterator[RunningServer]:
     """Start `sim-server --bind BIND ARGS`, wait for readiness, always clean up."""
     env = dict(os.environ)
@@ -58,7 +61,7 @@ def sim_server(
     with tempfile.TemporaryFile(mode="w+") as log:
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=log, text=True, env=env)
         try:
-            address = wait_for_line(process, "listening on ", READY_TIMEOUT_S)
+            address = wait_for_line(process, "listening on ", ready_timeout_s)
             yield RunningServer(process, address)
         finally:
             readiness.stop_process(process)

@@ -19,6 +19,7 @@ PROTOCOL = {
     "protocol.schema",
     "protocol.version",
     "protocol.recording",
+    "protocol.readiness",
     "protocol.transport",
 }
 MAY_IMPORT: dict[str, set[str]] = {

@@ -149,16 +149,7 @@ class SamplingWorker:
         self.index = index
         own = spec.simulator_args is not None
         self.simulator = OwnSimulator(spec.simulator_args or "") if own else None
-        address = self.simulator.address if self.simulator is not None else spec.address
-        try:
-            self.env = RemoteEnv(
-                address, spec.scenario, reward=spec.reward, timeout_s=spec.timeout_s,
-                reset_timeout_s=spec.reset_timeout_s, **spec.options,
-            )  # fmt: skip
-        except BaseException:
-            if self.simulator is not None:
-                self.simulator.close()
-            raise
+        self.env = self._connect()
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
         lanes = lane_choice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule, spec.residual)
         interval = float(spec.options.get("decision_interval", DECISION_INTERVAL))
@@ -194,6 +185,11 @@ class SamplingWorker:
                 self.local.drop_episodes()
                 continue
             except ServerUnavailable:
+                if self._own_simulator_exited():  # started again: nobody else would
+                    self.local.drop_episodes()
+                    self._restart_simulator()
+                    chunk.reconnects += 1
+                    continue
                 if self.spec.retry_for_s <= 0:
                     raise
                 self.local.drop_episodes()
@@ -211,6 +207,31 @@ class SamplingWorker:
     def drop_episodes(self) -> None:
         """Forget the running episode: the next `sample` starts a new one."""
         self.local.drop_episodes()
+
+    def _connect(self) -> RemoteEnv:
+        """The env on the worker's server (its own simulator, if it starts one)."""
+        spec = self.spec
+        address = self.simulator.address if self.simulator is not None else spec.address
+        try:
+            return RemoteEnv(
+                address, spec.scenario, reward=spec.reward, timeout_s=spec.timeout_s,
+                reset_timeout_s=spec.reset_timeout_s, **spec.options,
+            )  # fmt: skip
+        except BaseException:
+            if self.simulator is not None:
+                self.simulator.close()
+            raise
+
+    def _own_simulator_exited(self) -> bool:
+        return self.simulator is not None and self.simulator.process.poll() is not None
+
+    def _restart_simulator(self) -> None:
+        """A simulator of its own that exited (a SUMO crash): start another and drive it."""
+        assert self.simulator is not None
+        self.env.close()
+        self.simulator.close()
+        self.simulator = OwnSimulator(self.spec.simulator_args or "")
+        self.env = self.local.envs[0] = self._connect()
 
     def close(self) -> None:
         """Say goodbye to the server; stop the simulator it started, if any."""

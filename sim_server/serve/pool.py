@@ -13,7 +13,9 @@ of ``--workers`` (which restarts one that dies). Each client is routed to one of
   so the session rules (ownership, a retried step, the session timeout) stay the simulator's. A
   client whose connection closes has its simulator's connection closed too (it is free at once).
 - A simulator that exits fails the request in flight with ``simulator_error`` (the episode is
-  over); the client's next ``reset`` is placed on a free simulator, the others' sessions go on.
+  over); the client's next ``reset`` is placed on a free simulator (waiting up to
+  `PLACE_TIMEOUT_S` for one), the others' sessions go on. A client whose simulator another
+  client took over gets ``busy``, as from a single server, until it says hello again.
 - ``close`` frees the simulator.
 
 The front only looks at a frame's type (`leading_type`) where it must: requests of a client with
@@ -44,7 +46,7 @@ from protocol.codec import (
     leading_type,
 )
 from protocol.errors import ErrorCode, ProtocolError
-from protocol.messages import Error
+from protocol.messages import Bye, Error
 from protocol.readiness import format_listening
 from protocol.transport.security import ServerCredentials, start_authenticator
 from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS, bind_router, remove_ipc_file
@@ -59,6 +61,9 @@ CHECK_INTERVAL_S = 0.1
 """How often the front looks for simulators that exited or came back."""
 PLACE_TIMEOUT_S = 120.0
 """How long a client whose simulator exited waits for another one to come free."""
+ATTEMPT_TIMEOUT_S = 30.0
+"""How long a simulator may take to answer a hello sent to place a client (one busy with a
+long reset answers late) before the next one is tried."""
 
 
 def pool_addresses(count: int) -> tuple[str, list[str]]:
@@ -107,6 +112,10 @@ class _Route:
     own_hello: bool = False
     """Placed by the front's own hello (its simulator exited): `request` is forwarded after."""
     waiting_since: float | None = None
+    trying_since: float = 0.0
+    displaced: bool = False
+    """Its simulator was taken over by another client (after the session timeout, or once its
+    connection had gone): it gets `busy`, as from a single server."""
 
 
 class PoolServer(StopFlag):
@@ -155,7 +164,8 @@ class PoolServer(StopFlag):
     def serve(self) -> None:
         """Route requests until `stop`; always releases the sockets (not the simulators: the
         supervisor's)."""
-        last_check = 0.0
+        self._check_children(time.monotonic())  # the simulators ready now are up at once
+        last_check = time.monotonic()
         try:
             while not self._stop.is_set():
                 ready = dict(self._poller.poll(POLL_INTERVAL_MS))
@@ -192,8 +202,7 @@ class PoolServer(StopFlag):
             return
         peer, frame = parts[0], body[0]
         fd = source_fd(head)
-        # The news of a disconnection is read after the requests that came before it (`serve`):
-        # a request from a connection already reported closed leaves its simulator free.
+        self._read_events()  # up to date: was this descriptor closed, or reused since?
         gone = fd is not None and fd in self._closed_fds
         route = self._routes.get(peer)
         if route is not None:
@@ -201,22 +210,46 @@ class PoolServer(StopFlag):
             if route.child is not None and route.trying is None:
                 self._forward(route, envelope[1:], frame)  # the hot path: no decoding
                 return
-        if route is not None and route.trying is not None:
-            route.request = [*envelope, frame]  # a retry while being placed: answer this one
-            return
         kind = leading_type(frame) or _decoded_type(frame, self.max_frame_bytes)
-        if kind == "hello":
+        if route is not None and route.trying is not None:
+            self._while_placing(route, envelope, frame, kind)
+        elif kind == "hello":
             if route is None:
                 route = self._routes[peer] = _Route(peer, frame, fd=fd, connected=not gone)
                 route.last_seen = time.monotonic()
-            route.hello = frame
+            route.hello, route.displaced = frame, False
             self._place(route, [*envelope, frame], own_hello=False)
-        elif route is not None and kind == "reset":
-            self._place(route, [*envelope, frame], own_hello=True)
         elif route is not None:
-            self._answer(envelope, _refusal(ErrorCode.SIMULATOR_ERROR, _GONE))
+            self._without_simulator(route, envelope, frame, kind)
         else:
             self._answer(envelope, self._before_hello(frame, kind))
+
+    def _while_placing(
+        self, route: _Route, envelope: list[bytes], frame: bytes, kind: str | None
+    ) -> None:
+        """A request while the client's hello (or reset) is being placed: a retry of it is
+        answered in its place; anything else is told to wait."""
+        assert route.request is not None
+        if kind == leading_type(route.request[-1]):
+            route.request = [*envelope, frame]
+        else:
+            why = f"{kind} while this client is being placed on a simulator: await the reply"
+            self._answer(envelope, _refusal(ErrorCode.OUT_OF_ORDER, why))
+
+    def _without_simulator(
+        self, route: _Route, envelope: list[bytes], frame: bytes, kind: str | None
+    ) -> None:
+        """A client whose simulator exited or was taken over: its reset is placed afresh (not
+        where it was taken over: `busy`, as a single server answers), its close ends it."""
+        if kind == "close":
+            self._answer(envelope, encode(Bye()))
+            self._forget(route)
+        elif route.displaced:
+            self._answer(envelope, _refusal(ErrorCode.BUSY, _TAKEN))
+        elif kind == "reset":
+            self._place(route, [*envelope, frame], own_hello=True)
+        else:
+            self._answer(envelope, _refusal(ErrorCode.SIMULATOR_ERROR, _GONE))
 
     def _before_hello(self, frame: bytes, kind: str | None) -> bytes:
         """What a simulator would answer a client that has not said hello."""
@@ -230,8 +263,10 @@ class PoolServer(StopFlag):
         assert route.child is not None
         if route.link is None:
             route.link = self._open_link(route, route.child)
-        route.in_flight = envelope
-        route.link.send_multipart([*envelope, frame])
+        if _sent(route.link, [*envelope, frame]):
+            route.in_flight = envelope
+        else:
+            self._answer([route.peer, *envelope], _refusal(ErrorCode.BUSY, _QUEUED))
 
     def _answer(self, envelope: list[bytes], reply: bytes) -> None:
         self._front.send_multipart([*envelope, reply])
@@ -274,15 +309,16 @@ class PoolServer(StopFlag):
 
     def _try_next(self, route: _Route) -> None:
         assert route.request is not None
-        candidates = self._candidates(route)
-        if candidates:
-            child = candidates[0]
-            route.trying = child
+        for child in self._candidates(route):
+            route.trying, route.trying_since = child, time.monotonic()
             route.tried.add(child.index)
             link = self._open_link(route, child)
             hello = [b"", route.hello] if route.own_hello else route.request[1:]
-            link.send_multipart(hello)
-            return
+            if _sent(link, hello):
+                return
+            self._drop_link(route)
+            route.trying = None
+            continue
         route.trying = None
         if route.own_hello:
             return  # waits for a simulator to come free (`_check_children`), within a bound
@@ -307,17 +343,19 @@ class PoolServer(StopFlag):
         route.trying, route.request, route.waiting_since = None, None, None
         if kind != "welcome":  # refused for a reason of the client's own: it reads why
             self._drop_link(route)
-            self._answer(request[:-1] if route.own_hello else [route.peer, *reply[:-1]], frame)
+            self._answer(request[:-1], frame)  # the envelope of its latest try
             self._forget(route)
             return
         previous = child.holder
         if previous is not None and previous is not route:
-            self._lose(previous)
+            self._lose(previous, displaced=True)
         child.holder, route.child = route, child
         if route.own_hello:
             self._forward(route, request[1:-1], request[-1])
         else:
-            self._answer([route.peer, *reply[:-1]], frame)
+            self._answer(request[:-1], frame)
+        if not route.connected:  # gone meanwhile: its simulator is free again at once
+            self._drop_link(route)
 
     # ----------------------------------------------------------------------- from simulators
 
@@ -364,7 +402,14 @@ class PoolServer(StopFlag):
             elif not child.up and alive and worker.ready:
                 child.up, child.restarts_seen = True, worker.restarts
         for route in list(self._routes.values()):
-            if route.request is None or route.trying is not None:
+            if route.request is None:
+                continue
+            if route.trying is not None:
+                if now - route.trying_since > ATTEMPT_TIMEOUT_S:  # silent: the next one
+                    log.warning("simulator %d did not answer a hello", route.trying.index)
+                    self._drop_link(route)
+                    route.trying = None
+                    self._try_next(route)
                 continue
             assert route.waiting_since is not None
             if now - route.waiting_since > PLACE_TIMEOUT_S:
@@ -372,6 +417,7 @@ class PoolServer(StopFlag):
                 self._answer(route.request[:-1], _refusal(ErrorCode.SIMULATOR_ERROR, why))
                 route.request = None
             else:
+                route.tried.clear()  # a simulator that refused may be free by now
                 self._try_next(route)
 
     def _fail(self, child: _Child) -> None:
@@ -388,10 +434,13 @@ class PoolServer(StopFlag):
                 self._lose(route)
         child.holder = None
 
-    def _lose(self, route: _Route) -> None:
-        """`route` no longer has its simulator: its next reset is placed afresh."""
+    def _lose(self, route: _Route, displaced: bool = False) -> None:
+        """`route` no longer has its simulator: its next reset is placed afresh, or (taken over
+        by another client) it is told `busy`."""
+        if displaced and route.in_flight is not None:
+            self._answer([route.peer, *route.in_flight], _refusal(ErrorCode.BUSY, _TAKEN))
         self._drop_link(route)
-        route.child, route.in_flight = None, None
+        route.child, route.in_flight, route.displaced = None, None, displaced
         if not route.connected:
             self._forget(route)
 
@@ -442,10 +491,21 @@ class PoolServer(StopFlag):
 
 
 _FAILED = ErrorCode.SIMULATOR_ERROR
-_GONE = (
-    "this session's simulator is gone (its process exited, or another client took it over "
-    "after the session timeout); send reset for a new episode"
+_GONE = "this session's simulator process exited; send reset for a new episode"
+_TAKEN = (
+    "another client holds this simulator (it took over after the session timeout, or once "
+    "this client's connection had gone); say hello for another one"
 )
+_QUEUED = "too many requests of this client are queued for its simulator; await the replies"
+
+
+def _sent(link: zmq.Socket[bytes], frames: list[bytes]) -> bool:
+    """Send without blocking: a client that floods its simulator must not stall the pool."""
+    try:
+        link.send_multipart(frames, flags=zmq.NOBLOCK)
+    except zmq.Again:
+        return False
+    return True
 
 
 def _refusal(code: ErrorCode, message: str) -> bytes:
@@ -497,6 +557,8 @@ def run_pool(
     signal.signal(signal.SIGINT, on_signal)
     try:
         supervisor.start()
+        if supervisor.stopping:  # a signal came while the simulators started
+            return 0
         try:
             server = PoolServer(
                 supervisor, bind, credentials, heartbeat_timeout_s, session_timeout_s,

@@ -134,6 +134,11 @@ class Supervisor:
     def stop(self) -> None:
         self._stop.set()
 
+    @property
+    def stopping(self) -> bool:
+        """`stop` was called (a signal during `start` is seen here once it returns)."""
+        return self._stop.is_set()
+
     def shutdown(self) -> None:
         """SIGTERM every worker, then SIGKILL the ones still running after a grace period."""
         running = [w.process for w in self.workers if w.process and w.process.poll() is None]

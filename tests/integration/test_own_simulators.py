@@ -11,13 +11,16 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.training.run_log import read_rows
+from agent_client.training.sampler import SamplingWorker, Settings
 from agent_client.training.simulators import OwnSimulator, SimulatorFailed
+from tests.integration.test_ray_sampling import spec as ray_spec
 from tests.integration.test_train import wait_for_episodes
 from tests.integration.test_workers import alive
 
@@ -83,6 +86,25 @@ def test_an_own_simulator_serves_and_stops(tmp_path: Path, monkeypatch: pytest.M
     assert list(tmp_path.iterdir()) == []  # its socket's folder removed
     with pytest.raises(SimulatorFailed, match="did not start"):
         OwnSimulator("--backend nope")
+
+
+def test_a_worker_whose_simulator_dies_starts_another(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    spec = replace(ray_spec(""), simulator_args="--backend fake", timeout_s=2.0)
+    worker = SamplingWorker(spec, index=0, stride=1, first_seed=0)
+    try:
+        assert len(worker.sample(20, Settings(learning=False)).transitions) >= 20
+        assert worker.simulator is not None
+        first = worker.simulator.process.pid
+        os.kill(first, signal.SIGKILL)
+        chunk = worker.sample(20, Settings(learning=False))  # waits out one step's deadline
+        assert chunk.reconnects == 1 and len(chunk.transitions) >= 20
+        assert simulators_under(tmp_path) == [worker.simulator.process.pid] != [first]
+    finally:
+        worker.close()
+    assert simulators_under(tmp_path) == []
 
 
 @pytest.mark.ray

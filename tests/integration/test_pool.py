@@ -30,7 +30,9 @@ pytestmark = [pytest.mark.sumo]
 
 @pytest.fixture(scope="module")
 def pool(scenario_cache: Path) -> Iterator[RunningServer]:
-    with sim_server("--backend", "sumo", "--pool", "2", cache_dir=scenario_cache) as server:
+    with sim_server(
+        "--backend", "sumo", "--pool", "2", cache_dir=scenario_cache, ready_timeout_s=180
+    ) as server:
         yield server
 
 
@@ -89,6 +91,31 @@ def test_a_client_that_vanishes_frees_its_simulator_at_once(pool: RunningServer)
         assert set(refusals) <= {"busy"}
 
 
+def test_a_client_whose_simulator_was_taken_over_is_told_busy() -> None:
+    # Two idle sessions past the session timeout: a third client takes one of them over.
+    with sim_server("--backend", "fake", "--pool", "2", "--session-timeout", "1") as server:
+        first, second = RemoteEnv(server.address, "cf"), RemoteEnv(server.address, "cf")
+        try:
+            for env in (first, second):
+                env.reset(seed=1)
+            time.sleep(1.5)  # silent, still connected, past the timeout
+            third = RemoteEnv(server.address, "cf")
+            third.reset(seed=2)
+            outcomes = []
+            for env in (first, second):
+                try:
+                    drive(env, 1)
+                    outcomes.append("drove")
+                except ServerError as exc:
+                    outcomes.append(exc.code)
+            assert sorted(outcomes) == ["busy", "drove"]
+            assert drive(third, 3) == 3
+            third.close()
+        finally:
+            first.close()
+            second.close()
+
+
 def test_check_env_passes_on_an_env_from_gymnasium_make(pool: RunningServer) -> None:
     # The checker makes a second env from the spec for its determinism check: the pool's second
     # simulator serves it while the first env holds the first.
@@ -108,7 +135,9 @@ def test_the_pool_conforms_session_by_session(pool: RunningServer) -> None:
 
 
 def test_a_simulator_that_dies_ends_its_episode_only(scenario_cache: Path) -> None:
-    with sim_server("--backend", "sumo", "--pool", "2", cache_dir=scenario_cache) as server:
+    with sim_server(
+        "--backend", "sumo", "--pool", "2", cache_dir=scenario_cache, ready_timeout_s=180
+    ) as server:
         envs = [RemoteEnv(server.address, "cf"), RemoteEnv(server.address, "cf")]
         try:
             for env in envs:

@@ -54,6 +54,11 @@ def refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
         ([*LOOPBACK, "--pool", "0"], ["--pool 0"]),
         ([*LOOPBACK, "--pool", "2", "--workers", "2"], ["--pool and --workers"]),
         (["--bind", "direct://127.0.0.1:0", "--pool", "2"], ["--pool 2", "direct://", "--workers"]),
+        (
+            [*LOOPBACK, "--backend", "sumo-traci", "--traci-port", "8813", "--pool", "2"],
+            ["--pool 2", "--traci-port"],
+        ),
+        ([*LOOPBACK, "--p", "2"], ["--p"]),  # no abbreviations: the pool's children get argv
         (["--bind", "tcp://127.0.0.1:65535", "--workers", "2"], ["--workers 2", "65535"]),
         ([*LOOPBACK, "--spin-us", "10"], ["--spin-us", "--bind tcp://127.0.0.1:0"]),
         ([*LOOPBACK, "--max-frame-bytes", "0"], ["--max-frame-bytes 0"]),
