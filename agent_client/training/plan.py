@@ -43,10 +43,14 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
         if config.eval_every
         else "none (eval_every = 0)"
     )
+    where_trained = (
+        f"{config.simulators} simulators the Ray sampling workers start beside them"
+        if config.simulators
+        else f"{servers} server(s)"
+    )
     return [
         f"training {config.learner.algo.upper()} on {', '.join(config.scenarios)} (reward "
-        f"{config.reward}, {trainer.features.name} features, {lanes}{egos}) on {servers} "
-        f"server(s)",
+        f"{config.reward}, {trainer.features.name} features, {lanes}{egos}) on {where_trained}",
         f"  evaluations: {evaluations}",
         f"  targets: no collision, <= {100 * JERK_TARGET:g} % of jerk above "
         f"{JERK_COMFORT_LIMIT:g} m/s^3, <= {100 * HEADWAY_TARGET:g} % of headways under 1 s, "
