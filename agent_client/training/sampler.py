@@ -185,7 +185,10 @@ class SamplingWorker:
                 self.local.drop_episodes()
                 continue
             except ServerUnavailable:
-                if self._own_simulator_exited():  # started again: nobody else would
+                if self.simulator is not None:  # its own, exited or hung: nobody else restarts it
+                    self._failures_in_a_row += 1
+                    if self._failures_in_a_row >= MAX_FAILURES_IN_A_ROW:
+                        raise
                     self.local.drop_episodes()
                     self._restart_simulator()
                     chunk.reconnects += 1
@@ -221,9 +224,6 @@ class SamplingWorker:
             if self.simulator is not None:
                 self.simulator.close()
             raise
-
-    def _own_simulator_exited(self) -> bool:
-        return self.simulator is not None and self.simulator.process.poll() is not None
 
     def _restart_simulator(self) -> None:
         """A simulator of its own that exited (a SUMO crash): start another and drive it."""

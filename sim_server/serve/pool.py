@@ -61,6 +61,8 @@ CHECK_INTERVAL_S = 0.1
 """How often the front looks for simulators that exited or came back."""
 PLACE_TIMEOUT_S = 120.0
 """How long a client whose simulator exited waits for another one to come free."""
+RETRY_INTERVAL_S = 1.0
+"""How often a reset that waits for a simulator asks again those that refused it."""
 ATTEMPT_TIMEOUT_S = 30.0
 """How long a simulator may take to answer a hello sent to place a client (one busy with a
 long reset answers late) before the next one is tried."""
@@ -113,6 +115,10 @@ class _Route:
     """Placed by the front's own hello (its simulator exited): `request` is forwarded after."""
     waiting_since: float | None = None
     trying_since: float = 0.0
+    request_kind: str | None = None
+    """The type of `request` (a retry of the same type replaces it)."""
+    retry_at: float = 0.0
+    """While a reset waits for a simulator: when the refused ones are asked again."""
     displaced: bool = False
     """Its simulator was taken over by another client (after the session timeout, or once its
     connection had gone): it gets `busy`, as from a single server."""
@@ -205,11 +211,17 @@ class PoolServer(StopFlag):
         self._read_events()  # up to date: was this descriptor closed, or reused since?
         gone = fd is not None and fd in self._closed_fds
         route = self._routes.get(peer)
+        if gone and (route is None or route.child is None):
+            return  # sent by a client whose connection has closed since: nobody to answer
         if route is not None:
+            if fd is not None and fd != route.fd:
+                self._one_client_per_connection(route, fd)
             route.fd, route.connected, route.last_seen = fd, not gone, time.monotonic()
             if route.child is not None and route.trying is None:
                 self._forward(route, envelope[1:], frame)  # the hot path: no decoding
                 return
+        elif fd is not None:
+            self._one_client_per_connection(None, fd)
         kind = leading_type(frame) or _decoded_type(frame, self.max_frame_bytes)
         if route is not None and route.trying is not None:
             self._while_placing(route, envelope, frame, kind)
@@ -224,13 +236,19 @@ class PoolServer(StopFlag):
         else:
             self._answer(envelope, self._before_hello(frame, kind))
 
+    def _one_client_per_connection(self, route: _Route | None, fd: int) -> None:
+        """A connection carries one client: another route recorded on descriptor `fd` is of a
+        connection that closed before this one reused the number (its news read already)."""
+        for other in [r for r in self._routes.values() if r.fd == fd and r is not route]:
+            self._disconnected(other)
+
     def _while_placing(
         self, route: _Route, envelope: list[bytes], frame: bytes, kind: str | None
     ) -> None:
         """A request while the client's hello (or reset) is being placed: a retry of it is
         answered in its place; anything else is told to wait."""
         assert route.request is not None
-        if kind == leading_type(route.request[-1]):
+        if kind == route.request_kind:
             route.request = [*envelope, frame]
         else:
             why = f"{kind} while this client is being placed on a simulator: await the reply"
@@ -246,6 +264,8 @@ class PoolServer(StopFlag):
             self._forget(route)
         elif route.displaced:
             self._answer(envelope, _refusal(ErrorCode.BUSY, _TAKEN))
+        elif kind == "reset" and route.request is not None:
+            route.request = [*envelope, frame]  # a retry while it waits: the same wait
         elif kind == "reset":
             self._place(route, [*envelope, frame], own_hello=True)
         else:
@@ -281,7 +301,10 @@ class PoolServer(StopFlag):
             route.child.holder = None
         route.child = None
         route.request, route.own_hello, route.tried = request, own_hello, set()
-        route.waiting_since = time.monotonic()
+        route.request_kind = leading_type(request[-1]) or _decoded_type(
+            request[-1], self.max_frame_bytes
+        )
+        route.waiting_since = route.retry_at = time.monotonic()
         self._try_next(route)
 
     def _candidates(self, route: _Route) -> list[_Child]:
@@ -416,8 +439,9 @@ class PoolServer(StopFlag):
                 why = f"no simulator of the pool came free within {PLACE_TIMEOUT_S:g} s"
                 self._answer(route.request[:-1], _refusal(ErrorCode.SIMULATOR_ERROR, why))
                 route.request = None
-            else:
-                route.tried.clear()  # a simulator that refused may be free by now
+            elif now >= route.retry_at:  # a simulator that refused may be free by now
+                route.tried.clear()
+                route.retry_at = now + RETRY_INTERVAL_S
                 self._try_next(route)
 
     def _fail(self, child: _Child) -> None:
@@ -567,6 +591,9 @@ def run_pool(
         except Exception as exc:  # zmq.ZMQError and OS errors: report and exit cleanly
             print(f"sim-server: cannot bind {bind}: {exc}", file=sys.stderr)
             return 1
+        if supervisor.stopping:  # a signal came while the front was built
+            server.close()
+            return 0
         if exit_with_parent:
             stop_with_parent(server)
         threading.Thread(target=supervisor.supervise, name="pool-supervisor", daemon=True).start()
