@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 from types import FrameType
 
 import zmq
-from zmq.utils.monitor import parse_monitor_message
 
 from protocol.codec import (
     DEFAULT_MAX_FRAME_BYTES,
@@ -48,11 +47,11 @@ from protocol.codec import (
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import Bye, Error
 from protocol.readiness import format_listening
-from protocol.transport.security import ServerCredentials, start_authenticator
-from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS, bind_router, remove_ipc_file
+from protocol.transport.security import ServerCredentials
+from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS
 from sim_server.serve.lifecycle import StopFlag, stop_with_parent
 from sim_server.serve.workers import Supervisor, Worker, without_options
-from sim_server.serve.zeromq import POLL_INTERVAL_MS, source_fd
+from sim_server.serve.zeromq import POLL_INTERVAL_MS, RouterFront, source_fd
 from sim_server.session import DEFAULT_SESSION_TIMEOUT_S
 
 log = logging.getLogger("sim_server")
@@ -146,21 +145,12 @@ class PoolServer(StopFlag):
         self._routes: dict[bytes, _Route] = {}
         self._by_link: dict[zmq.Socket[bytes], _Route] = {}
         self._closed_fds: set[int] = set()
-        self._context = zmq.Context()
-        self._authenticator = (
-            start_authenticator(self._context, credentials) if credentials is not None else None
-        )
-        try:
-            self._front, self.endpoint = bind_router(
-                self._context, address, credentials, int(heartbeat_timeout_s * 1000)
-            )
-        except Exception:
-            self._release_context()
-            raise
-        self._monitor = self._front.get_monitor_socket(zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED)
+        self._front = RouterFront(address, credentials, heartbeat_timeout_s)
+        self.endpoint = self._front.endpoint
+        self._context = self._front.context
         self._poller = zmq.Poller()
-        self._poller.register(self._front, zmq.POLLIN)
-        self._poller.register(self._monitor, zmq.POLLIN)
+        self._poller.register(self._front.socket, zmq.POLLIN)
+        self._poller.register(self._front.monitor, zmq.POLLIN)
 
     @property
     def sessions(self) -> int:
@@ -175,12 +165,12 @@ class PoolServer(StopFlag):
         try:
             while not self._stop.is_set():
                 ready = dict(self._poller.poll(POLL_INTERVAL_MS))
-                if self._front in ready:  # data first, then the news of a disconnection
+                if self._front.socket in ready:  # data first, then news of a disconnection
                     self._read_front()
                 for link in [s for s in ready if s in self._by_link]:
                     if link in self._by_link:  # not closed by an earlier reply in this round
                         self._read_link(link)
-                if self._monitor in ready:
+                if self._front.monitor in ready:
                     self._read_events()
                 now = time.monotonic()
                 if now - last_check >= CHECK_INTERVAL_S:
@@ -192,21 +182,12 @@ class PoolServer(StopFlag):
     # ----------------------------------------------------------------------- from clients
 
     def _read_front(self) -> None:
-        front = self._front
-        head = front.recv(copy=False)
-        parts = [head.bytes]
-        while front.rcvmore:
-            parts.append(front.recv())
-        try:
-            split = parts.index(b"", 1) + 1
-        except ValueError:
-            split = 1
-        envelope, body = parts[:split], parts[split:]
+        head, envelope, body = self._front.receive()
         if len(body) != 1:
             refusal = Error(ErrorCode.DECODE_ERROR.value, f"expected one frame, got {len(body)}")
             self._answer(envelope, encode(refusal))
             return
-        peer, frame = parts[0], body[0]
+        peer, frame = envelope[0], body[0]
         fd = source_fd(head)
         self._read_events()  # up to date: was this descriptor closed, or reused since?
         gone = fd is not None and fd in self._closed_fds
@@ -289,7 +270,7 @@ class PoolServer(StopFlag):
             self._answer([route.peer, *envelope], _refusal(ErrorCode.BUSY, _QUEUED))
 
     def _answer(self, envelope: list[bytes], reply: bytes) -> None:
-        self._front.send_multipart([*envelope, reply])
+        self._front.socket.send_multipart([*envelope, reply])
 
     # ----------------------------------------------------------------------- placing
 
@@ -396,12 +377,10 @@ class PoolServer(StopFlag):
             self._drop_link(route)  # the client died after sending: its simulator is free
 
     def _read_events(self) -> None:
-        while self._monitor.poll(0):
-            event = parse_monitor_message(self._monitor.recv_multipart())
-            fd = event["value"]
-            if event["event"] == zmq.EVENT_ACCEPTED:
+        for event, fd in self._front.events():
+            if event == zmq.EVENT_ACCEPTED:
                 self._closed_fds.discard(fd)
-            elif event["event"] == zmq.EVENT_DISCONNECTED:
+            elif event == zmq.EVENT_DISCONNECTED:
                 self._closed_fds.add(fd)
                 for route in [r for r in self._routes.values() if r.fd == fd]:
                     self._disconnected(route)
@@ -500,18 +479,9 @@ class PoolServer(StopFlag):
             return
         for route in list(self._routes.values()):
             self._drop_link(route)
-        self._front.disable_monitor()
-        self._monitor.close(linger=0)
-        self._front.close(linger=0)
-        self._release_context()
-        remove_ipc_file(self.endpoint)
+        self._front.close()
         if self._folder is not None:
             shutil.rmtree(self._folder, ignore_errors=True)
-
-    def _release_context(self) -> None:
-        if self._authenticator is not None:
-            self._authenticator.stop()
-        self._context.term()
 
 
 _FAILED = ErrorCode.SIMULATOR_ERROR

@@ -67,7 +67,7 @@ class ToyServer(Server):
     def __init__(self) -> None:
         super().__init__(_Routed(self), "tcp://127.0.0.1:0")
         if not self.handover:
-            self._socket.setsockopt(zmq.ROUTER_HANDOVER, 0)
+            self._front.socket.setsockopt(zmq.ROUTER_HANDOVER, 0)
         self.address = str(self.endpoint)
         self._thread = threading.Thread(target=self.serve, daemon=True)
 
