@@ -30,12 +30,10 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import numpy as np
 
 from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
-from agent_client.envs.vector_env import RemoteVectorEnv
-from benchmarks.scaling import training
+from benchmarks.scaling import stepping, training
 from protocol.readiness import LISTENING, stop_process, wait_for_line
 
 
@@ -79,20 +77,6 @@ def independent(address: str, scenario: str, seconds: float, count: int) -> floa
     return sum(steps) / max(seconds, elapsed - 2.0)  # the processes' start-up is not stepping
 
 
-def lock_step(address: str, scenario: str, seconds: float, count: int) -> float:
-    env = RemoteVectorEnv([address] * count, scenario, reward="ra3")
-    try:
-        env.reset(seed=0)
-        actions = {"acceleration": np.full((count, 1), 0.3), "lane_change": np.zeros(count)}
-        steps, started = 0, time.monotonic()
-        while time.monotonic() - started < seconds:
-            env.step(actions)
-            steps += count
-        return steps / (time.monotonic() - started)
-    finally:
-        env.close()
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pool", type=int, default=2, help="simulators in the pool")
@@ -113,7 +97,8 @@ def main() -> int:
         }
         stop_process(plain)
         row["independent_idm"] = independent(pool_address, args.scenario, args.seconds, args.pool)
-        row["lock_step"] = lock_step(pool_address, args.scenario, args.seconds, args.pool)
+        lock_step = stepping([pool_address] * args.pool, args.scenario, args.seconds)
+        row["lock_step"] = lock_step["env_steps_per_s"]
         trained = training([pool_address] * args.pool, args.scenario, args.seconds)
         row["training"] = trained["train_env_steps_per_s"]
         row["training_updates_per_s"] = trained["updates_per_s"]
