@@ -43,6 +43,7 @@ from protocol.messages import (
     Ego,
     EndReason,
     Events,
+    LaneChangeRefusal,
     LeaderTrip,
     MultiObservation,
     Neighbour,
@@ -641,9 +642,12 @@ class SumoBackend(Backend):
         steps."""
         refused = self._lane_change_refusal(episode, ego, lane_change) if lane_change else ""
         started = bool(lane_change) and not refused
+        drive = Drive(ego, request, lane_change, refused, started)
         if started:
             self._start_lane_change(episode, ego, lane_change)
-        return Drive(ego, request, lane_change, refused, started)
+        elif refused == LaneChangeRefusal.GAP_TOO_SMALL and _route_needs(ego, lane_change):
+            drive.signalled_from = self._signal_lane_change(episode, ego, lane_change)
+        return drive
 
     def _lane_change_refusal(self, episode: _Episode, ego: EgoState, direction: int) -> str:
         could_change = self._api.vehicle.couldChangeLane
@@ -664,6 +668,35 @@ class SumoBackend(Backend):
         now = self._api.simulation.getTime()
         ego.lane_change = LaneChangeUnderWay(target, direction, now)
 
+    def _signal_lane_change(
+        self, episode: _Episode, ego: EgoState, direction: int
+    ) -> tuple[str, int]:
+        """Keep a change the route needs requested over the decision although its gap is too
+        small now; returns the ego's road and lane. SUMO's drivers then make room for it as
+        they do for each other's strategic changes (LC2013 asks the blocking leader and
+        follower in the target lane to adapt their speed to a requested change), and SUMO
+        starts it within the decision if its own gap check passes (lane-change mode 512):
+        `_signalled_start` sees that. The request ends before the next decision's first step."""
+        vehicle = self._api.vehicle
+        lane = self._lane(episode, ego.id)[0]
+        vehicle.changeLane(ego.id, lane + direction, (episode.substeps - 0.5) * episode.dt)
+        return vehicle.getRoadID(ego.id), lane
+
+    def _signalled_start(self, drive: Drive, source: tuple[str, int]) -> None:
+        """Turn a signalled change (`_signal_lane_change`) that SUMO started in the last
+        simulation step into the lane change under way, reported as started."""
+        vehicle = self._api.vehicle
+        ego = drive.ego
+        road, lane = source
+        target = lane + drive.lane_change
+        moved = vehicle.getRoadID(ego.id) == road and vehicle.getLaneIndex(ego.id) == target
+        if not moved and abs(vehicle.getLateralLanePosition(ego.id)) <= 1e-6:
+            return
+        now = self._api.simulation.getTime()
+        ego.lane_change = LaneChangeUnderWay(target, drive.lane_change, now)
+        drive.signalled_from = None
+        drive.started, drive.refused = True, ""
+
     def _drive(self, episode: _Episode, drive: Drive) -> None:
         """Run the decision's simulation steps; stop early at a collision or the ego's arrival."""
         simulation = self._api.simulation
@@ -682,8 +715,7 @@ class SumoBackend(Backend):
             if ego_id in arrived:
                 drive.end_of_road = True
                 break
-            if ego.lane_change is not None:
-                drive.completed, drive.aborted = self._lane_change_progress(ego, ego.lane_change)
+            self._lane_change_steps(drive)
 
     def _substep(self, episode: _Episode, ego_id: str, request: float) -> tuple[float, str]:
         """One simulation step: the applied acceleration and what limited it ("" nothing)."""
@@ -920,9 +952,17 @@ class SumoBackend(Backend):
         if ego.id in arrived:
             drive.end_of_road = True
             return True
+        self._lane_change_steps(drive)
+        return False
+
+    def _lane_change_steps(self, drive: Drive) -> None:
+        """After a simulation step: a signalled change that started, a change that completed
+        or was given up."""
+        if drive.signalled_from is not None:
+            self._signalled_start(drive, drive.signalled_from)
+        ego = drive.ego
         if ego.lane_change is not None:
             drive.completed, drive.aborted = self._lane_change_progress(ego, ego.lane_change)
-        return False
 
     def _take_out(self, ego_ids: list[str]) -> None:
         """Remove egos whose drive has ended from the simulation (those still in it)."""
@@ -1069,7 +1109,7 @@ class SumoBackend(Backend):
                 episode, vehicle.getNeighbors(ego_id, 0b000) if left else none, None, frame
             ),
             leader=nearest(
-                episode, (leader,) if leader and leader[0] else none, ego_min_gap, frame
+                episode, (leader,) if leader and leader[0] else none, ego_min_gap, frame, ego_id
             ),
             follower=nearest(
                 episode, (follower,) if follower and follower[0] else none, None, frame
@@ -1106,18 +1146,35 @@ class SumoBackend(Backend):
         heading = math.radians(self._api.vehicle.getAngle(ego_id))
         return (x, y, -math.cos(heading), math.sin(heading))
 
+    def _bumper_gap(self, ego_id: str, leader: str) -> float:
+        """From the ego's front to the leader's rear, along the ego's heading (m; negative where
+        they overlap), from their positions (SUMO's is the front bumper's middle)."""
+        vehicle = self._api.vehicle
+        x, y = vehicle.getPosition(ego_id)
+        heading = math.radians(vehicle.getAngle(ego_id))
+        other_x, other_y = vehicle.getPosition(leader)
+        other_heading = math.radians(vehicle.getAngle(leader))
+        length = vehicle.getLength(leader)
+        rear_x = other_x - length * math.sin(other_heading)
+        rear_y = other_y - length * math.cos(other_heading)
+        return (rear_x - x) * math.sin(heading) + (rear_y - y) * math.cos(heading)
+
     def _nearest(
         self,
         episode: _Episode,
         found: Any,
         ego_min_gap: float | None,
         frame: tuple[float, float, float, float] | None,
+        ego_id: str = "",
     ) -> Neighbour:
         """The closest of (id, distance) pairs as a Neighbour with the net bumper gap.
 
         SUMO's leader distance excludes the ego's minGap, its follower distance the follower's:
         `ego_min_gap` is given for leaders, None for followers. Its lateral offset is measured
-        across the ego's heading (`frame`), or 0 without a frame (one curved lane).
+        across the ego's heading (`frame`), or 0 without a frame (one curved lane). SUMO reports
+        a leader on a junction closer than the ego's minGap at distance 0 (it clamps such a
+        "link leader's" gap, which may be negative): given `ego_id`, that gap is measured from
+        the two vehicles' positions instead.
         """
         api = self._api
         if not found:
@@ -1130,6 +1187,8 @@ class SumoBackend(Backend):
             gap = distance + min_gap
         else:
             gap = distance + ego_min_gap
+            if ego_id and distance <= 0.0:
+                gap = min(gap, self._bumper_gap(ego_id, other))
         if gap > self.sensor_range:
             return self._absent
         lateral = 0.0
@@ -1189,3 +1248,9 @@ class SumoBackend(Backend):
 
 def _second(pair: tuple[str, float]) -> float:
     return pair[1]
+
+
+def _route_needs(ego: EgoState, direction: int) -> bool:
+    """The ego's route needs a change in `direction` (by the road of its last observation)."""
+    road = ego.last.road if ego.last is not None else None
+    return road is not None and road.lanes_to_change * direction > 0

@@ -73,6 +73,7 @@ class Drive:
         "limited_by",
         "refused",
         "request",
+        "signalled_from",
         "started",
         "substeps",
         "teleported",
@@ -94,6 +95,9 @@ class Drive:
         self.teleported = False
         self.completed = False
         self.aborted = False
+        self.signalled_from: tuple[str, int] | None = None
+        """The ego's road and lane when its refused change was kept requested (SUMO backend,
+        `_signal_lane_change`); None otherwise."""
 
     def applied(self, acceleration: float, why: str) -> None:
         """One simulation step ran with `acceleration`; `why` names the rule that limited it
