@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from operator import attrgetter
 
 from protocol.messages import FieldSpec, Observation, road_ahead
-from protocol.version import ROAD_VERSION
+from protocol.version import ROAD_VERSION, STOP_LINE_VERSION
 
 NEIGHBOUR_SLOTS: tuple[str, ...] = (
     "left_leader",
@@ -79,6 +79,14 @@ _ROAD_FIELDS: list[tuple[FieldSpec, Getter]] = [
 ]
 """The road ahead (since 1.6), after the 32 fields of 1.0."""
 
+_STOP_LINE_FIELDS: list[tuple[FieldSpec, Getter]] = [
+    (
+        FieldSpec("stop_line", "m", "distance to where the ego must stop now at a junction"),
+        lambda o: road_ahead(o).stop_line,
+    ),
+]
+"""The stop line (since 1.7), after the road's four fields."""
+
 _FIELDS: list[tuple[FieldSpec, Getter]] = [
     (FieldSpec("time", "s", "simulation time"), lambda o: o.time),
     (FieldSpec("ego_speed", "m/s", "speed of the ego"), lambda o: o.ego.speed),
@@ -101,18 +109,25 @@ _FIELDS: list[tuple[FieldSpec, Getter]] = [
     ),
     *_neighbour_fields(),
     *_ROAD_FIELDS,
+    *_STOP_LINE_FIELDS,
 ]
 
 OBSERVATION_FIELDS: tuple[FieldSpec, ...] = tuple(spec for spec, _ in _FIELDS)
 """The canonical flat vector, in order."""
 
-_BEFORE_ROAD = len(OBSERVATION_FIELDS) - len(_ROAD_FIELDS)
+_BEFORE_STOP_LINE = len(OBSERVATION_FIELDS) - len(_STOP_LINE_FIELDS)
+_BEFORE_ROAD = _BEFORE_STOP_LINE - len(_ROAD_FIELDS)
 
 
 def fields_for(version: tuple[int, int]) -> tuple[FieldSpec, ...]:
     """The flat vector a client of protocol `version` knows (a client refuses a field it does
-    not know): the 32 fields of 1.0 before 1.6, then the road's four too."""
-    return OBSERVATION_FIELDS if version >= ROAD_VERSION else OBSERVATION_FIELDS[:_BEFORE_ROAD]
+    not know): the 32 fields of 1.0 before 1.6, then the road's four too, then from 1.7 the
+    stop line."""
+    if version >= STOP_LINE_VERSION:
+        return OBSERVATION_FIELDS
+    if version >= ROAD_VERSION:
+        return OBSERVATION_FIELDS[:_BEFORE_STOP_LINE]
+    return OBSERVATION_FIELDS[:_BEFORE_ROAD]
 
 
 _GETTERS: dict[str, Getter] = {spec.name: getter for spec, getter in _FIELDS}

@@ -22,6 +22,9 @@ Revision history:
          the ego's lane ends along its route, which way and how many lanes lead on, and where
          the lanes beside it end; four fields of the flat vector, announced to 1.6 clients
          only; the end reason ``lane_end``.
+    1.7  The stop line: `road.stop_line`, where the ego must stop now at the next junction on
+         its route (a red light, a road that must give way to foes with priority); one field
+         of the flat vector, announced to 1.7 clients only.
 
 The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
 
@@ -31,7 +34,7 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 6)
+PROTOCOL_VERSION: tuple[int, int] = (1, 7)
 
 MANY_EGOS_VERSION: tuple[int, int] = (1, 4)
 """The first version with many egos in one simulation (`multi_step`, `multi_observation`)."""
@@ -41,6 +44,9 @@ EGO_SHARE_VERSION: tuple[int, int] = (1, 5)
 
 ROAD_VERSION: tuple[int, int] = (1, 6)
 """The first version with the road ahead (`Road`, the ``lane_end`` end reason)."""
+
+STOP_LINE_VERSION: tuple[int, int] = (1, 7)
+"""The first version with the stop line (`Road.stop_line`)."""
 
 
 def format_version(version: tuple[int, int]) -> str:

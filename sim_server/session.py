@@ -29,7 +29,13 @@ from protocol.messages import (
     Welcome,
 )
 from protocol.schema import OBSERVATION_FIELDS, fields_for
-from protocol.version import PROTOCOL_VERSION, ROAD_VERSION, format_version, is_compatible
+from protocol.version import (
+    PROTOCOL_VERSION,
+    ROAD_VERSION,
+    STOP_LINE_VERSION,
+    format_version,
+    is_compatible,
+)
 from sim_server import __version__
 from sim_server.backends.base import Backend
 from sim_server.backends.options import merge_options
@@ -39,6 +45,8 @@ log = logging.getLogger("sim_server")
 
 _BEFORE_ROAD = (ROAD_VERSION[0], ROAD_VERSION[1] - 1)
 """The last version whose flat vector has no road fields."""
+_BEFORE_STOP_LINE = (STOP_LINE_VERSION[0], STOP_LINE_VERSION[1] - 1)
+"""The last version whose flat vector has no stop line."""
 
 DEFAULT_SESSION_TIMEOUT_S = 600.0
 """Silence after which another client may take over a client that is still connected."""
@@ -82,10 +90,14 @@ class Session:
         )
         welcome = backend.welcome(ours)
         self._welcome = encode(welcome)
-        # A client refuses a flat-vector field it does not know: one older than 1.6 is
+        # A client refuses a flat-vector field it does not know: one older than 1.7 is
         # announced the fields of its version (the named observation it reads either way).
-        older = replace(welcome, observation_fields=fields_for(_BEFORE_ROAD))
-        self._welcome_before_road = encode(older) if welcome is ours else self._welcome
+        self._welcome_before_stop_line, self._welcome_before_road = (
+            encode(replace(welcome, observation_fields=fields_for(version)))
+            if welcome is ours
+            else self._welcome
+            for version in (_BEFORE_STOP_LINE, _BEFORE_ROAD)
+        )
         self.owner: bytes | None = None
         self.owner_connected = False
         self._last_seen = 0.0
@@ -175,7 +187,11 @@ class Session:
             log.info("hello from %s", _printable(hello.client) or "an unnamed client")
         self.owner = peer
         self._episode = None
-        return self._welcome if hello.protocol >= ROAD_VERSION else self._welcome_before_road
+        if hello.protocol >= STOP_LINE_VERSION:
+            return self._welcome
+        if hello.protocol >= ROAD_VERSION:
+            return self._welcome_before_stop_line
+        return self._welcome_before_road
 
     def _reset(self, reset: Reset) -> bytes:
         info = self._scenarios.get(reset.scenario)

@@ -4,7 +4,9 @@
     s*(v, dv) = s0 + v T + v dv / (2 sqrt(a b))
 
 with s the net gap to the leader and dv = v - v_leader (positive when closing in). Without a
-leader only the free-road term acts. It reads the same named observations as any policy.
+leader only the free-road term acts. A stop line (protocol 1.7, `Road.stop_line`: a red light, a
+road that must give way) is a standing vehicle there, as SUMO's and highway-env's drivers treat
+a closed way. It reads the same named observations as any policy.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from protocol.messages import Observation
+from protocol.messages import ROAD_RANGE, Observation
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,15 @@ def idm_acceleration(
     return params.a * (free - (desired / max(gap, 0.1)) ** 2)
 
 
+def stop_line_acceleration(params: IDMParams, obs: Observation) -> float:
+    """IDM's acceleration before the ego's stop line (`Road.stop_line`) as before a standing
+    vehicle there; infinite where there is none."""
+    road = obs.road
+    if road is None or road.stop_line >= ROAD_RANGE:
+        return math.inf
+    return idm_acceleration(params, obs.ego.speed, obs.ego.speed_limit, road.stop_line, 0.0)
+
+
 class IDMDriver:
     """A policy that drives the ego with IDM and keeps its lane."""
 
@@ -64,4 +75,4 @@ class IDMDriver:
         leader = obs.neighbours.leader
         gap = leader.gap if leader.present else None
         acc = idm_acceleration(self.params, obs.ego.speed, obs.ego.speed_limit, gap, leader.speed)
-        return acc, 0
+        return min(acc, stop_line_acceleration(self.params, obs)), 0

@@ -13,7 +13,8 @@ Parameters: p = 0.25 (Treiber's "realistic" range is 0-0.5), b_safe = 4 m/s², t
 m/s², bias 0.2 m/s² (the typical values of Treiber's MOBIL page and Kesting et al. 2007).
 Discretionary changes are considered once a second, as in highway-env.
 
-On top, the **strategic** changes a route needs (`protocol.messages.Road`, protocol 1.6): a lane
+IDM's acceleration also stops the ego at a stop line (protocol 1.7, `Road.stop_line`). On top, the
+**strategic** changes a route needs (`protocol.messages.Road`, protocol 1.6): a lane
 that ends is a standing obstacle for IDM (as highway-env models a lane end); when the ego's lane
 must be left (``lanes_to_change`` not 0) within a look-ahead that grows with the lanes to cross
 and the speed, MOBIL's incentive test is skipped and only safety counts, every decision; near
@@ -28,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from agent_client.drivers.idm import IDMParams, idm_acceleration
+from agent_client.drivers.idm import IDMParams, idm_acceleration, stop_line_acceleration
 from agent_client.rl.lanes import gap_is_safe, secure_gap
 from protocol.messages import ROAD_RANGE, Neighbour, Observation, Road, road_ahead
 
@@ -136,6 +137,7 @@ class IDMMobilDriver:
         ego = obs.ego
         must = _sign(road.lanes_to_change)
         acceleration = self._idm(ego.speed, ego.speed_limit, obs.neighbours.leader)
+        acceleration = min(acceleration, stop_line_acceleration(self.params, obs))
         if must:
             acceleration = min(acceleration, self._stop_before(road.lane_end, ego.speed))
         if not ego.changing_lane and self._strategic(obs, road) and not self._fits(obs, must):

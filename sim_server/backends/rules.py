@@ -95,7 +95,8 @@ class EndRule:
     not continue the ego's route (slower than ``stop_speed`` within ``stop_gap`` of its end,
     `Observation.road`, for ``lane_end_patience`` seconds: a merge not made, an exit missed);
     an unreasonable stop (slower than ``stop_speed`` for ``stop_patience`` seconds, with no
-    leader or one more than ``stop_gap`` ahead and faster, away from a lane end);
+    leader or one more than ``stop_gap`` ahead and faster, away from a lane end and from a stop
+    line, `Road.stop_line`);
     ``max_episode_time`` seconds after the ego's entry (the only truncation).
     """
 
@@ -158,8 +159,11 @@ class EndRule:
     def _stopped(self, obs: Observation) -> bool:
         leader = obs.neighbours.leader
         speed = obs.ego.speed
-        if speed < self._stop_speed and (
-            not leader.present or (leader.gap > self._stop_gap and speed < leader.speed)
+        waiting = obs.road is not None and obs.road.stop_line <= self._stop_gap
+        if (
+            speed < self._stop_speed
+            and not waiting
+            and (not leader.present or (leader.gap > self._stop_gap and speed < leader.speed))
         ):
             if self.stopped_since is None:
                 self.stopped_since = obs.time

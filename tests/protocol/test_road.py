@@ -12,6 +12,7 @@ from protocol.messages import (
     EgoObservation,
     EndReason,
     MultiObservation,
+    Observation,
     Road,
     road_ahead,
 )
@@ -56,12 +57,23 @@ def test_a_1_5_client_reads_a_1_6_observation_ignoring_its_road() -> None:
     assert decode_reply(msgpack.packb(frame)) == make_observation()
 
 
+def test_a_1_6_servers_road_has_no_stop_line_and_a_1_6_client_ignores_it() -> None:
+    frame = msgpack.unpackb(encode(make_observation(road=MERGING)))
+    assert frame["road"]["stop_line"] == ROAD_RANGE
+    del frame["road"]["stop_line"]  # what a 1.6 server sends
+    decoded = decode_reply(msgpack.packb(frame))
+    assert isinstance(decoded, Observation) and decoded.road == MERGING
+    assert decoded.road.stop_line == ROAD_RANGE
+
+
 def test_the_flat_vector_ends_with_the_road() -> None:
     flatten = Flattener(OBSERVATION_FIELDS)
     vector = flatten(make_observation(ego=Ego(15.0, 0.0, 0, 3, 320.0, 27.78), road=MERGING))
-    names = [f.name for f in OBSERVATION_FIELDS[-4:]]
-    assert names == ["lane_end", "lanes_to_change", "left_lane_end", "right_lane_end"]
-    assert vector[-4:] == [143.5, 1.0, ROAD_RANGE, 0.0]
+    names = [f.name for f in OBSERVATION_FIELDS[-5:]]
+    assert names == ["lane_end", "lanes_to_change", "left_lane_end", "right_lane_end", "stop_line"]
+    assert vector[-5:] == [143.5, 1.0, ROAD_RANGE, 0.0, ROAD_RANGE]  # no stop line: the range
+    at_a_light = flatten(make_observation(road=Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=42.0)))
+    assert at_a_light[-1] == 42.0
 
 
 def test_an_observation_without_road_reads_as_the_open_road() -> None:
@@ -73,8 +85,9 @@ def test_an_observation_without_road_reads_as_the_open_road() -> None:
     assert road_ahead(one_lane) == Road(ROAD_RANGE, 0, 0.0, 0.0)
 
 
-def test_a_client_older_than_1_6_is_announced_the_32_fields_it_knows() -> None:
+def test_a_client_is_announced_the_fields_of_its_version() -> None:
     assert fields_for((1, 5)) == OBSERVATION_FIELDS[:32]
     assert fields_for((1, 0)) == OBSERVATION_FIELDS[:32]
-    assert fields_for((1, 6)) == OBSERVATION_FIELDS
+    assert fields_for((1, 6)) == OBSERVATION_FIELDS[:36]  # the road, no stop line
+    assert fields_for((1, 7)) == OBSERVATION_FIELDS
     assert fields_for((1, 9)) == OBSERVATION_FIELDS

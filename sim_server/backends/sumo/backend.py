@@ -81,7 +81,7 @@ from sim_server.backends.sumo.egos import (
     ego_ids,
     multi_observation,
 )
-from sim_server.backends.sumo.road import carried, road_ahead
+from sim_server.backends.sumo.road import carried, road_ahead, stop_line
 from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
 from sim_server.backends.sumo.scenarios import (
     BUILTIN_SCENARIOS,
@@ -1084,10 +1084,13 @@ class SumoBackend(Backend):
             speed_limit=self._api.lane.getMaxSpeed(lane_id),
             changing_lane=0 if ego.lane_change is None else ego.lane_change.direction,
         )
-        road = road_ahead(
-            vehicle.getBestLanes(ego_id), lane_id, vehicle.getLanePosition(ego_id),
-            self._lane_length,
-        )  # fmt: skip
+        lane_position = vehicle.getLanePosition(ego_id)
+        best_lanes = vehicle.getBestLanes(ego_id)
+        road = road_ahead(best_lanes, lane_id, lane_position, self._lane_length)
+        if road is not None:
+            to_junction = self._lane_length(lane_id) - lane_position
+            links = vehicle.getNextLinks(ego_id)
+            road = replace(road, stop_line=stop_line(links, to_junction, speed))
         if road is None:  # on a junction
             last = ego.last
             driven = position - last.ego.position if last is not None else 0.0
@@ -1096,6 +1099,8 @@ class SumoBackend(Backend):
         ego_min_gap = ego.min_gap
         sensed = self.sensor_range
         leader = vehicle.getLeader(ego_id, sensed)
+        if not leader or not leader[0]:
+            leader = self._leader_beyond(best_lanes, lane_id, lane_position, ego_min_gap)
         follower = vehicle.getFollower(ego_id, sensed)
         # SUMO finds no neighbour where there is no lane: on a built-in road, skip those queries.
         left = not episode.one_way or lane + 1 < lane_count
@@ -1145,6 +1150,28 @@ class SumoBackend(Backend):
         x, y = self._api.vehicle.getPosition(ego_id)
         heading = math.radians(self._api.vehicle.getAngle(ego_id))
         return (x, y, -math.cos(heading), math.sin(heading))
+
+    def _leader_beyond(
+        self, best_lanes: Any, lane_id: str, lane_position: float, ego_min_gap: float
+    ) -> tuple[str, float] | None:
+        """The nearest vehicle ahead on the lanes the ego's lane leads into along its route
+        (`vehicle.getBestLanes`), as (id, gap less the ego's minGap) like `vehicle.getLeader`,
+        or None within the sensor range. SUMO's own search stops at a junction whose way it
+        judges closed to the ego, so that a jam standing beyond it was not seen (SUMO's ramp:
+        an off-ramp's queue, first seen at 73 m from 32 m/s). Junctions' internal lanes are
+        not counted: the gap may be short by a junction's length."""
+        lanes = next((entry[5] for entry in best_lanes if entry[0] == lane_id), ())
+        vehicle, seen = self._api.vehicle, self._lane_length(lane_id) - lane_position
+        for lane in lanes[1:]:
+            if seen >= self.sensor_range:
+                return None
+            on_lane = self._api.lane.getLastStepVehicleIDs(lane)
+            if on_lane:
+                last = min(on_lane, key=vehicle.getLanePosition)
+                rear = vehicle.getLanePosition(last) - vehicle.getLength(last)
+                return last, seen + rear - ego_min_gap
+            seen += self._lane_length(lane)
+        return None
 
     def _bumper_gap(self, ego_id: str, leader: str) -> float:
         """From the ego's front to the leader's rear, along the ego's heading (m; negative where

@@ -13,8 +13,13 @@ at least 3 km): they are reported at `ROAD_RANGE`.
 On a junction (an internal lane) SUMO reports only the lane the ego leads into: the road there is
 the one of the lane it came from, carried on by the distance driven (`carried`).
 
-Source: SUMO docs, TraCI "Vehicle Value Retrieval" (best lanes, 0xb2); src/microsim/MSVehicle.cpp
-(`updateBestLanes`).
+The stop line (`stop_line`, protocol 1.7) is SUMO's own right of way at the next junction:
+`vehicle.getNextLinks` gives, for each junction along the ego's route, its link's state (a
+light's colour, major or minor road) and whether it is open to the ego now (SUMO's
+`MSLink::opened`, given the foes that approach with priority: what its own drivers give way by).
+
+Source: SUMO docs, TraCI "Vehicle Value Retrieval" (best lanes, 0xb2; next links, 0x33);
+src/microsim/MSVehicle.cpp (`updateBestLanes`), src/libsumo/Vehicle.cpp (`getNextLinks`).
 """
 
 from __future__ import annotations
@@ -31,6 +36,16 @@ one edge share its length; their junction lanes may differ a little)."""
 _LENGTH, _OFFSET, _NEXT = 1, 3, 5
 """Positions in a best-lanes entry: (lane id, length, occupation, offset, allows continuation,
 next lanes)."""
+
+_OPEN, _STATE = 2, 5
+"""Positions in a next-links entry: (lane, has priority, is open, has foe, via lane, state,
+direction, length)."""
+CLOSED_STATES = frozenset("ru")
+"""Link states that close the way whatever the foes: red, red-yellow."""
+YELLOW = "y"
+YELLOW_DECELERATION = 3.0
+"""m/s²: a yellow light closes the way to an ego that can stop before it braking no harder
+(a firm, normal braking); one that cannot drives on, as drivers do."""
 
 
 def road_ahead(
@@ -82,3 +97,21 @@ def carried(previous: Road | None, driven: float, lane: int, lane_count: int) ->
         on(previous.left_lane_end) if lane < lane_count - 1 else 0.0,
         on(previous.right_lane_end) if lane > 0 else 0.0,
     )
+
+
+def stop_line(next_links: Any, to_junction: float, speed: float) -> float:
+    """Metres to where the ego must stop now: the end of its lane (`to_junction` m ahead) when
+    the link to the next junction on its route (the first of `next_links`) is closed to it, else
+    `ROAD_RANGE`. Closed: red or red-yellow, yellow where stopping needs no more than
+    `YELLOW_DECELERATION`, or not open by SUMO's right of way (foes with priority approach, a
+    stop sign not yet stopped at). No links (a lane that ends, the end of the route): none."""
+    if not next_links or to_junction >= ROAD_RANGE:
+        return ROAD_RANGE
+    link = next_links[0]
+    state = link[_STATE]
+    room = max(to_junction, 0.0)
+    if state == YELLOW:
+        closed = speed * speed <= 2.0 * YELLOW_DECELERATION * room
+    else:
+        closed = state in CLOSED_STATES or not link[_OPEN]
+    return room if closed else ROAD_RANGE

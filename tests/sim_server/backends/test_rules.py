@@ -293,3 +293,12 @@ def test_the_open_road_never_ends_at_a_lane_end() -> None:
     found = at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 21, Road(ROAD_RANGE, 0, 0.0, 0.0))
     assert EndReason.LANE_END not in found
     assert found[20] is EndReason.STOPPED
+
+
+def test_waiting_at_a_stop_line_is_no_unreasonable_stop_and_a_far_one_is_no_excuse() -> None:
+    at_the_line = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=3.0)  # a red light, foes to give way to
+    found = at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 40, at_the_line)
+    assert found == [None] * 40
+    far_ahead = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=300.0)
+    found = at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 21, far_ahead)
+    assert found[20] is EndReason.STOPPED

@@ -1,20 +1,24 @@
 """What the traffic around the ego does for it, and what the ego sees there, in real SUMO: a
 change the route needs is signalled to the traffic when its gap is too small (SUMO's drivers make
-room for it), and a leader on a junction is seen at its real gap."""
+room for it), a leader on a junction or beyond one is seen at its real gap, and a road that must
+give way has a stop line while foes with priority approach (protocol 1.7)."""
 
 from __future__ import annotations
 
 import itertools
+import math
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import sumo
 
+from agent_client.drivers import mobil
 from agent_client.drivers.mobil import IDMMobilDriver
-from protocol.messages import EndReason, Observation, OptionValue
+from protocol.messages import ROAD_RANGE, EndReason, Observation, OptionValue
 from sim_server.backends.sumo.backend import SumoBackend
-from sim_server.backends.sumo.scenarios import CustomScenario
+from sim_server.backends.sumo.scenarios import CustomScenario, find_netconvert
 
 pytestmark = pytest.mark.sumo
 
@@ -22,10 +26,48 @@ SUMO_RAMP = Path(sumo.SUMO_HOME) / "tools" / "game" / "ramp.sumocfg"
 """SUMO's own motorway with an on-ramp and an off-ramp, as eclipse-sumo ships it."""
 
 
+RAMP_LENGTH = 250.0
+"""m of the ramp that joins the motorway at a junction where it gives way (`write_yield_merge`)."""
+
+
+def write_yield_merge(folder: Path) -> Path:
+    """A one-lane ramp joining a one-lane road at a priority junction, where the ramp gives way
+    (as Flow's merge and SMARTS's ``3lane_merge`` join theirs), 1,200 veh/h on the road; the
+    ego's route ``ego`` comes from the ramp. Returns the .sumocfg."""
+    (folder / "m.nod.xml").write_text(
+        '<nodes><node id="w" x="0" y="0"/><node id="j" x="600" y="0" type="priority"/>'
+        '<node id="e" x="1200" y="0"/><node id="r" x="400" y="-150"/></nodes>\n'
+    )
+    (folder / "m.edg.xml").write_text(
+        '<edges><edge id="main" from="w" to="j" numLanes="1" speed="25" priority="2"/>'
+        '<edge id="on" from="j" to="e" numLanes="1" speed="25" priority="2"/>'
+        f'<edge id="ramp" from="r" to="j" numLanes="1" speed="16" priority="1" '
+        f'length="{RAMP_LENGTH}"/></edges>\n'
+    )
+    subprocess.run(
+        [find_netconvert(), "--node-files", str(folder / "m.nod.xml"),
+         "--edge-files", str(folder / "m.edg.xml"), "--output-file", str(folder / "m.net.xml"),
+         "--no-turnarounds", "true"],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    (folder / "m.rou.xml").write_text(
+        '<routes><route id="through" edges="main on"/><route id="ego" edges="ramp on"/>'
+        '<flow id="road" route="through" begin="0" end="3600" vehsPerHour="1200" '
+        'departSpeed="max"/></routes>\n'
+    )
+    config = folder / "m.sumocfg"
+    config.write_text(
+        '<configuration><input><net-file value="m.net.xml"/><route-files value="m.rou.xml"/>'
+        '</input><time><step-length value="0.1"/></time></configuration>\n'
+    )
+    return config
+
+
 @pytest.fixture(scope="module")
 def backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
     ramp = CustomScenario("ramp", SUMO_RAMP, "offramp")
-    backend = SumoBackend(cache_dir=tmp_path_factory.mktemp("merging"), custom=(ramp,))
+    merge = CustomScenario("yield", write_yield_merge(tmp_path_factory.mktemp("yield")), "ego")
+    backend = SumoBackend(cache_dir=tmp_path_factory.mktemp("merging"), custom=(ramp, merge))
     yield backend
     backend.close()
 
@@ -92,3 +134,21 @@ def test_the_gap_measured_from_positions_is_sumos_on_a_straight_road(
     assert leader.present
     measured = backend._bumper_gap("ego", leader.id)
     assert measured == pytest.approx(leader.gap, abs=0.05)
+
+
+def test_a_road_that_gives_way_has_a_stop_line_while_foes_approach(
+    backend: SumoBackend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """From the ramp of a yield junction: the stop line is the end of the ramp whenever the way
+    is closed; IDM + MOBIL waits there and merges on every seed. Blind to it (the driver of
+    protocol 1.6), it collides with the road's traffic on some."""
+    lines = []
+    for seed in range(10):
+        seen = drive_idm_mobil(backend, "yield", seed)
+        assert seen[-1].reason == EndReason.END_OF_ROAD, seed
+        lines += [o.road.stop_line for o in seen if o.road and o.road.stop_line < ROAD_RANGE]
+    assert len(lines) > 100 and min(lines) < 5.0  # it waited right at the line
+    assert max(lines) <= RAMP_LENGTH
+    monkeypatch.setattr(mobil, "stop_line_acceleration", lambda params, obs: math.inf)
+    blind = [drive_idm_mobil(backend, "yield", seed)[-1].reason for seed in range(10)]
+    assert EndReason.COLLISION in blind
