@@ -96,7 +96,8 @@ class EndRule:
     `Observation.road`, for ``lane_end_patience`` seconds: a merge not made, an exit missed);
     an unreasonable stop (slower than ``stop_speed`` for ``stop_patience`` seconds, with no
     leader or one more than ``stop_gap`` ahead and faster, away from a lane end and from a stop
-    line, `Road.stop_line`);
+    line, `Road.stop_line`; a stop that began at a stop line has ``lane_end_patience`` seconds
+    once the line has cleared: a driver may wait for a longer gap than the simulator's);
     ``max_episode_time`` seconds after the ego's entry (the only truncation).
     """
 
@@ -108,6 +109,7 @@ class EndRule:
         "_stop_speed",
         "_time_limit",
         "at_lane_end_since",
+        "stopped_at_line",
         "stopped_since",
     )
 
@@ -122,6 +124,8 @@ class EndRule:
         """Time of the first observation of the current stop (None: not stopped)."""
         self.at_lane_end_since: float | None = None
         """Time of the first observation of the current stand at a lane end (None: none)."""
+        self.stopped_at_line = False
+        """The current stop began at a stop line."""
 
     @property
     def entry_time(self) -> float:
@@ -159,15 +163,19 @@ class EndRule:
     def _stopped(self, obs: Observation) -> bool:
         leader = obs.neighbours.leader
         speed = obs.ego.speed
-        waiting = obs.road is not None and obs.road.stop_line <= self._stop_gap
-        if (
-            speed < self._stop_speed
-            and not waiting
-            and (not leader.present or (leader.gap > self._stop_gap and speed < leader.speed))
+        if speed >= self._stop_speed:
+            self.stopped_at_line = False
+        elif obs.road is not None and obs.road.stop_line <= self._stop_gap:
+            self.stopped_at_line = True  # waiting for the way to open
+            self.stopped_since = None
+            return False
+        if speed < self._stop_speed and (
+            not leader.present or (leader.gap > self._stop_gap and speed < leader.speed)
         ):
             if self.stopped_since is None:
                 self.stopped_since = obs.time
-            return obs.time - self.stopped_since >= self._stop_patience
+            patience = self._lane_end_patience if self.stopped_at_line else self._stop_patience
+            return obs.time - self.stopped_since >= patience
         self.stopped_since = None
         return False
 

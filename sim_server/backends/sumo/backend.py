@@ -81,7 +81,7 @@ from sim_server.backends.sumo.egos import (
     ego_ids,
     multi_observation,
 )
-from sim_server.backends.sumo.road import carried, road_ahead, stop_line
+from sim_server.backends.sumo.road import Foe, carried, road_ahead, stop_line, yields_at
 from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
 from sim_server.backends.sumo.scenarios import (
     BUILTIN_SCENARIOS,
@@ -1090,7 +1090,9 @@ class SumoBackend(Backend):
         if road is not None:
             to_junction = self._lane_length(lane_id) - lane_position
             links = vehicle.getNextLinks(ego_id)
-            road = replace(road, stop_line=stop_line(links, to_junction, speed))
+            foes = self._priority_foes(ego_id, yields_at(links), to_junction)
+            line = stop_line(links, to_junction, speed, state.speed_limit, foes)
+            road = replace(road, stop_line=line)
         if road is None:  # on a junction
             last = ego.last
             driven = position - last.ego.position if last is not None else 0.0
@@ -1150,6 +1152,20 @@ class SumoBackend(Backend):
         x, y = self._api.vehicle.getPosition(ego_id)
         heading = math.radians(self._api.vehicle.getAngle(ego_id))
         return (x, y, -math.cos(heading), math.sin(heading))
+
+    def _priority_foes(self, ego_id: str, via: str, to_junction: float) -> tuple[Foe, ...]:
+        """The foes with priority the ego must give way to on the junction lane `via` ("":
+        none to look at) of its next junction (`vehicle.getJunctionFoes`: who yields to whom
+        is SUMO's, by the junction's right of way)."""
+        if not via:
+            return ()
+        vehicle = self._api.vehicle
+        return tuple(
+            Foe(foe_distance, foe_exit, vehicle.getSpeed(foe_id), ego_exit)
+            for (foe_id, _, foe_distance, ego_exit, foe_exit, ego_lane, _, ego_yields,
+                 foe_yields) in vehicle.getJunctionFoes(ego_id, to_junction + 1.0)
+            if ego_lane == via and ego_yields and not foe_yields
+        )  # fmt: skip
 
     def _leader_beyond(
         self, best_lanes: Any, lane_id: str, lane_position: float, ego_min_gap: float

@@ -24,7 +24,9 @@ src/microsim/MSVehicle.cpp (`updateBestLanes`), src/libsumo/Vehicle.cpp (`getNex
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from protocol.messages import ROAD_RANGE, Road
@@ -37,9 +39,22 @@ _LENGTH, _OFFSET, _NEXT = 1, 3, 5
 """Positions in a best-lanes entry: (lane id, length, occupation, offset, allows continuation,
 next lanes)."""
 
-_OPEN, _STATE = 2, 5
+_PRIORITY, _OPEN, _VIA, _STATE = 1, 2, 4, 5
 """Positions in a next-links entry: (lane, has priority, is open, has foe, via lane, state,
 direction, length)."""
+MINOR_TIME_GAP = 1.0
+"""s: how long before a foe with priority reaches the conflict point the ego must have left it
+(SUMO's default ``jmTimegapMinor``)."""
+CLEARING_ACCELERATION = 1.5
+"""m/s²: the acceleration the ego is assumed to leave the junction with (IDM's a): SUMO's own
+check of a link assumes the lanes' speed, which a standing ego is far from."""
+VEHICLE_LENGTH = 5.0
+"""m: the ego's length assumed in clearing a conflict point."""
+FOE_DECELERATION = 4.0
+"""m/s²: the hardest braking the ego's entry may impose on a foe with priority (MOBIL's
+b_safe)."""
+STANDSTILL_GAP = 2.0
+"""m: the gap a foe keeps behind the ego at the least (IDM's s0)."""
 CLOSED_STATES = frozenset("ru")
 """Link states that close the way whatever the foes: red, red-yellow."""
 YELLOW = "y"
@@ -99,12 +114,33 @@ def carried(previous: Road | None, driven: float, lane: int, lane_count: int) ->
     )
 
 
-def stop_line(next_links: Any, to_junction: float, speed: float) -> float:
+@dataclass(frozen=True, slots=True)
+class Foe:
+    """A vehicle with priority at the ego's next junction (`vehicle.getJunctionFoes`)."""
+
+    distance: float
+    """m from its front to the conflict point (negative once it has reached it)."""
+    exit_distance: float
+    """m from its front to where it has left the conflict area (negative: left)."""
+    speed: float
+    ego_exit_distance: float
+    """m from the ego's front to where the ego's front leaves the conflict area."""
+
+
+def stop_line(
+    next_links: Any,
+    to_junction: float,
+    speed: float,
+    speed_limit: float,
+    foes: Sequence[Foe] = (),
+) -> float:
     """Metres to where the ego must stop now: the end of its lane (`to_junction` m ahead) when
     the link to the next junction on its route (the first of `next_links`) is closed to it, else
     `ROAD_RANGE`. Closed: red or red-yellow, yellow where stopping needs no more than
-    `YELLOW_DECELERATION`, or not open by SUMO's right of way (foes with priority approach, a
-    stop sign not yet stopped at). No links (a lane that ends, the end of the route): none."""
+    `YELLOW_DECELERATION`, not open by SUMO's right of way (foes with priority approach, a stop
+    sign not yet stopped at), or too close a foe with priority (`foes`) for the ego to leave
+    the conflict point from its speed at `CLEARING_ACCELERATION` (`_too_close`). No links (a
+    lane that ends, the end of the route): none."""
     if not next_links or to_junction >= ROAD_RANGE:
         return ROAD_RANGE
     link = next_links[0]
@@ -113,5 +149,49 @@ def stop_line(next_links: Any, to_junction: float, speed: float) -> float:
     if state == YELLOW:
         closed = speed * speed <= 2.0 * YELLOW_DECELERATION * room
     else:
-        closed = state in CLOSED_STATES or not link[_OPEN]
+        closed = state in CLOSED_STATES or not link[_OPEN] or _too_close(foes, speed, speed_limit)
     return room if closed else ROAD_RANGE
+
+
+def yields_at(next_links: Any) -> str:
+    """The junction lane of the next link when the ego must give way there (a minor link SUMO
+    judges open now: its foes are worth a closer look), else ""."""
+    if not next_links:
+        return ""
+    link = next_links[0]
+    return "" if link[_PRIORITY] or not link[_OPEN] else str(link[_VIA])
+
+
+def _too_close(foes: Sequence[Foe], speed: float, speed_limit: float) -> bool:
+    """A foe would come too close once the ego has left the conflict point (its rear there): the
+    foe then closes in until, braking at `FOE_DECELERATION` while the ego accelerates at
+    `CLEARING_ACCELERATION`, it is down to the ego's speed, and must still keep the ego's
+    `MINOR_TIME_GAP` and `STANDSTILL_GAP` (it follows the ego after a merge)."""
+    for foe in foes:
+        if foe.exit_distance <= 0.0:
+            continue  # gone through
+        if foe.distance <= 0.0:
+            return True  # in the conflict area now
+        to_clear = max(foe.ego_exit_distance + VEHICLE_LENGTH, 0.0)
+        clears = _time_to_cover(to_clear, speed, speed_limit)
+        leaving = min(speed_limit, math.sqrt(speed * speed + 2 * CLEARING_ACCELERATION * to_clear))
+        left = foe.distance - foe.speed * clears  # the foe's front from the point by then
+        closing = max(foe.speed - leaving, 0.0)
+        closes_in = closing * closing / (2 * (FOE_DECELERATION + CLEARING_ACCELERATION))
+        if left < closes_in + leaving * MINOR_TIME_GAP + STANDSTILL_GAP:
+            return True
+    return False
+
+
+def _time_to_cover(distance: float, speed: float, limit: float) -> float:
+    """Seconds to drive `distance` m from `speed`, accelerating at `CLEARING_ACCELERATION` up
+    to `limit`."""
+    a = CLEARING_ACCELERATION
+    speed = max(speed, 0.0)
+    if speed >= limit:
+        return distance / max(speed, 0.1)
+    to_limit = (limit - speed) / a
+    on_the_way = speed * to_limit + 0.5 * a * to_limit * to_limit
+    if on_the_way >= distance:
+        return (math.sqrt(speed * speed + 2.0 * a * distance) - speed) / a
+    return to_limit + (distance - on_the_way) / limit

@@ -302,3 +302,24 @@ def test_waiting_at_a_stop_line_is_no_unreasonable_stop_and_a_far_one_is_no_excu
     far_ahead = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=300.0)
     found = at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 21, far_ahead)
     assert found[20] is EndReason.STOPPED
+
+
+def test_a_stop_that_began_at_a_stop_line_has_the_lane_ends_patience_once_it_clears() -> None:
+    rule = EndRule(replace(OPTIONS, lane_end_patience=5.0), ENTRY)
+    at_the_line = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=3.0)
+    cleared = Road(ROAD_RANGE, 0, 0.0, 0.0)
+    times = tenths(ENTRY + 0.9, 80)
+    roads = [at_the_line] * 20 + [cleared] * 60
+    found = [
+        rule.check(replace(observation(t, 0.0), road=road))
+        for t, road in zip(times, roads, strict=True)
+    ]
+    assert found[:69] == [None] * 69  # 4.9 s after the line cleared: still patient
+    assert found[70] is EndReason.STOPPED  # 5 s
+    rule = EndRule(replace(OPTIONS, lane_end_patience=5.0), ENTRY)  # moving in between: 2 s
+    speeds = [0.0] * 20 + [2.0] + [0.0] * 59
+    found = [
+        rule.check(replace(observation(t, v), road=road))
+        for t, v, road in zip(times, speeds, roads, strict=True)
+    ]
+    assert found.index(EndReason.STOPPED) == 41
