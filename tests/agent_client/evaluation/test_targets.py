@@ -61,6 +61,16 @@ def test_the_ceiling_asked_is_no_more_than_the_reference_reaches() -> None:
     assert not targets_met(figures(speed_ratio_to_ceiling=0.97), ahead)["near_ceiling"]
 
 
+def test_where_a_route_changes_lanes_a_ceiling_the_reference_trails_is_no_target() -> None:
+    """The leader-at-entry is no bound where the ego changes lanes: the speed is judged against
+    the reference (as_fast_as_idm), not again on the few episodes with a ceiling."""
+    trailing = {**IDM, "speed_ratio_to_ceiling": 0.82, "route_lanes": 1}
+    assert targets_met(figures(speed_ratio_to_ceiling=0.80), trailing)["near_ceiling"]
+    assert not targets_met(figures(average_speed=13.9), trailing)["as_fast_as_idm"]
+    reaching = {**IDM, "speed_ratio_to_ceiling": 1.05, "route_lanes": 1}  # there it holds
+    assert not targets_met(figures(speed_ratio_to_ceiling=0.97), reaching)["near_ceiling"]
+
+
 def test_on_a_road_with_a_lane_end_every_episode_must_arrive() -> None:
     routed = {**IDM, "route_lanes": 1, "arrival_share": 0.9}
     assert not targets_met(figures(arrival_share=0.95), routed)["arrives"]
