@@ -433,15 +433,16 @@ class _ObservationRules:
             self.rule(f"{self.where}.ego.speed_limit", ego.speed_limit, "> 0 m/s (§4.2)")
 
     def road(self) -> None:
-        """The road ahead (§4.9, since 1.6): distances within [0, ROAD_RANGE], none beside the
-        ego where there is no lane, a lane to change to that exists."""
+        """The road ahead (§4.9, since 1.6): distances within [0, ROAD_RANGE] (the stop line's
+        too, since 1.7), none beside the ego where there is no lane, a lane to change to that
+        exists."""
         road = self.obs.road
         if road is None:
             return
         lane, lanes = self.obs.ego.lane, self.obs.ego.lane_count
         where = f"{self.where}.road"
         top = ROAD_RANGE * (1 + TOLERANCE)
-        for name in ("lane_end", "left_lane_end", "right_lane_end"):
+        for name in ("lane_end", "left_lane_end", "right_lane_end", "stop_line"):
             value = getattr(road, name)
             if not 0 <= value <= top:
                 self.rule(f"{where}.{name}", value, f"within [0, {ROAD_RANGE:g}] m (§4.9)")

@@ -18,6 +18,7 @@ from agent_client.errors import InvalidReply
 from agent_client.transport.replies import ReplyChecker, check_welcome, scenario_problems
 from protocol.codec import decode_reply, encode
 from protocol.messages import (
+    ROAD_RANGE,
     ActionSchema,
     AppliedAction,
     Bye,
@@ -34,6 +35,7 @@ from protocol.messages import (
     Neighbour,
     Observation,
     Reset,
+    Road,
     Safety,
     ScenarioInfo,
     Step,
@@ -215,6 +217,8 @@ STEP_CASES: list[tuple[str, Breaker, str]] = [
             o.events, collision=True, collision_with="x"),
         safety=Safety((Conflict("x", 5.0, 4.0, 1.0, 4.0, None, 0.5, 0.1, 0.2),), 3.0, 3.0, 2.0)),
      "observation.safety.conflicts[0].end"),
+    ("stop line behind", lambda o: replace(o, road=Road(ROAD_RANGE, 0, 0.0, 0.0, -3.0)),
+     "observation.road.stop_line"),
     ("traffic columns", lambda o: replace(
         o, traffic=Traffic(("a", "b"), ("h", "h"), (0,), (1.0, 2.0), (1.0, 2.0), (0.0, 0.0),
                            ("", ""), (200.0, 200.0), (0.0, 0.0))),
