@@ -130,6 +130,7 @@ def evaluation_line(evaluation: dict[str, Any]) -> str:
         f"headway<1s {100 * evaluation['headway_share_below_1s']:.2f}% | "
         + (f"arrived {100 * arrived:.0f}% | " if evaluation.get("route_lanes") else "")
         + f"passed: {', '.join(passed) or 'none'} | in a row: {evaluation['passed_in_a_row']}"
+        + ("" if evaluation.get("trained", True) else " (the actor's burn-in: not counted)")
         + (f" | failed: {failed}" if failed else "")
         + (
             f" | stopped after {evaluation['episodes']} episodes: {evaluation['stopped']} failed"

@@ -637,6 +637,7 @@ class Trainer:
         context = {
             "episode": progress.episode,
             "global_step": progress.global_step,
+            "trained": self._actor_trained(),
             # The next episode at which another evaluation may be due: its verdict (and the
             # budget's wait it sets) must be known there. One the gate or the budget held back
             # started after a multiple of `eval_every`, and the next is due sooner.
@@ -653,6 +654,12 @@ class Trainer:
         if not self.eval_servers:
             self.collector.drop_episodes()  # the evaluation used the training servers
         self._evaluation_done(job, summaries, log)
+
+    def _actor_trained(self) -> bool:
+        """Whether the policy has learned anything yet: a residual policy's actor waits for its
+        burn-in, and until then it drives as its reference, whose passes say nothing of what
+        was learned (they do not count towards convergence)."""
+        return not self.scale.residual or self.progress.updates > self.config.residual_burn_in
 
     def _policy_job(self, state: dict[str, Any], context: dict[str, Any]) -> EvaluationJob:
         """The evaluation of policy `state` on the held-out seeds (`context`: the episode and
@@ -785,7 +792,7 @@ class Trainer:
         progress = self.progress
         progress.evaluation_steps += steps
         progress.wall_time = time.monotonic() - self._started
-        passes = complete and all(met.values())
+        passes = complete and all(met.values()) and job.context.get("trained", True)
         progress.passed_in_a_row = progress.passed_in_a_row + 1 if passes else 0
         budget = self.config.eval_budget
         if budget is not None and not passes:  # wait for training to outweigh what it cost
@@ -804,6 +811,7 @@ class Trainer:
             "speed_ratio_to_idm": result["average_speed"] / self._idm_speed_on(summaries),
             **{f"target_{name}": passed for name, passed in met.items()},
             "passed_in_a_row": progress.passed_in_a_row,
+            "trained": job.context.get("trained", True),
             "stopped": job.stopped or "",
             "failed_scenarios": failed_scenarios if len(self.config.scenarios) > 1 else "",
             "episodes_saved": len(job.seeds) - len(summaries),

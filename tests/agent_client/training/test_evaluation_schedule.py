@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from agent_client.errors import UsageError
+from agent_client.training import trainer as trainer_module
 from agent_client.training.config import TrainConfig, apply_overrides
 from agent_client.training.eval_pool import EvaluationPool
 from agent_client.training.run_log import read_rows
@@ -175,3 +176,24 @@ def test_a_resumed_run_starts_again_the_evaluation_that_was_running_when_it_stop
     assert (first["episode"], first["global_step"]) == (
         started[0]["episode"], started[0]["global_step"]
     )  # fmt: skip
+
+
+def test_a_residual_policys_passes_in_its_burn_in_do_not_count(
+    fake_server: RunningServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before its actor learns, a residual policy drives as its reference: a pass then says
+    nothing of what was learned, and does not count towards convergence (every target is met
+    here, whatever the figures)."""
+    met = {"no_collisions": True, "as_fast_as_idm": True}
+    monkeypatch.setattr(trainer_module, "targets_met", lambda policy, reference: dict(met))
+    waiting = train(fake_server.address, tmp_path / "burn", eval_budget=None,
+                    residual="idm+mobil", residual_burn_in=10**6)  # fmt: skip
+    rows = read_rows(tmp_path / "burn" / "evaluations.csv")
+    assert len(rows) >= 3 and all(r["trained"] == "False" for r in rows)
+    assert all(int(r["passed_in_a_row"]) == 0 for r in rows)
+    assert waiting.progress.converged_episode is None
+    learned = train(fake_server.address, tmp_path / "learned", eval_budget=None,
+                    residual="idm+mobil", residual_burn_in=0)  # fmt: skip
+    rows = read_rows(tmp_path / "learned" / "evaluations.csv")
+    assert rows and all(r["trained"] == "True" for r in rows)
+    assert learned.progress.converged_episode is not None
