@@ -228,7 +228,7 @@ def field_bounds(spec: FieldSpec, sensor_range: float, schema: ActionSchema) -> 
         return 1.0, float(MAX_LANES)
     if name == "lanes_to_change":
         return 1.0 - MAX_LANES, MAX_LANES - 1.0
-    if name.endswith("lane_end"):
+    if name.endswith("lane_end") or name == "stop_line":
         return 0.0, ROAD_RANGE
     caps = {"m/s": MAX_SPEED, "s": MAX_TIME, "m": MAX_DISTANCE}
     if unit in caps:

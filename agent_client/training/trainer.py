@@ -245,6 +245,8 @@ class Trainer:
         self._episodes_started = 0
         self._updates_due = 0
         self._losses: list[float] = []
+        self._actor_learned = False
+        """The actor has had an update (a residual policy's waits for its burn-in)."""
         self._evaluation_wanted = False
         self._evaluation_due = False
         """An evaluation is due but waits for the gate or for `eval_budget`."""
@@ -377,6 +379,7 @@ class Trainer:
             batches = [self.buffer.sample(batch_size) for _ in range(due)]
             actor = not self.scale.residual or self.progress.updates >= self.config.residual_burn_in
             self._losses += [m["critic_loss"] for m in agent.update_many(batches, actor)]
+            self._actor_learned = self._actor_learned or actor
             if first and clock() - sent > COMPILED_LOAD_NOTICE_S:
                 self.say(
                     f"the compiled update took {clock() - sent:.1f} s to load (once per process; "
@@ -659,7 +662,7 @@ class Trainer:
         """Whether the policy has learned anything yet: a residual policy's actor waits for its
         burn-in, and until then it drives as its reference, whose passes say nothing of what
         was learned (they do not count towards convergence)."""
-        return not self.scale.residual or self.progress.updates > self.config.residual_burn_in
+        return not self.scale.residual or self._actor_learned
 
     def _policy_job(self, state: dict[str, Any], context: dict[str, Any]) -> EvaluationJob:
         """The evaluation of policy `state` on the held-out seeds (`context`: the episode and

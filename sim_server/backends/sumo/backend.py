@@ -689,7 +689,11 @@ class SumoBackend(Backend):
         ego = drive.ego
         road, lane = source
         target = lane + drive.lane_change
-        moved = vehicle.getRoadID(ego.id) == road and vehicle.getLaneIndex(ego.id) == target
+        if vehicle.getRoadID(ego.id) != road:  # a lane index means another lane there: drop it
+            vehicle.changeLane(ego.id, vehicle.getLaneIndex(ego.id), 0.0)
+            drive.signalled_from = None
+            return
+        moved = vehicle.getLaneIndex(ego.id) == target
         if not moved and abs(vehicle.getLateralLanePosition(ego.id)) <= 1e-6:
             return
         now = self._api.simulation.getTime()
@@ -1087,9 +1091,9 @@ class SumoBackend(Backend):
         lane_position = vehicle.getLanePosition(ego_id)
         best_lanes = vehicle.getBestLanes(ego_id)
         road = road_ahead(best_lanes, lane_id, lane_position, self._lane_length)
+        links = vehicle.getNextLinks(ego_id) if road is not None else ()
         if road is not None:
             to_junction = self._lane_length(lane_id) - lane_position
-            links = vehicle.getNextLinks(ego_id)
             foes = self._priority_foes(ego_id, yields_at(links), to_junction)
             line = stop_line(links, to_junction, speed, state.speed_limit, foes)
             road = replace(road, stop_line=line)
@@ -1102,7 +1106,7 @@ class SumoBackend(Backend):
         sensed = self.sensor_range
         leader = vehicle.getLeader(ego_id, sensed)
         if not leader or not leader[0]:
-            leader = self._leader_beyond(best_lanes, lane_id, lane_position, ego_min_gap)
+            leader = self._leader_beyond(best_lanes, links, lane_id, lane_position, ego_min_gap)
         follower = vehicle.getFollower(ego_id, sensed)
         # SUMO finds no neighbour where there is no lane: on a built-in road, skip those queries.
         left = not episode.one_way or lane + 1 < lane_count
@@ -1168,17 +1172,24 @@ class SumoBackend(Backend):
         )  # fmt: skip
 
     def _leader_beyond(
-        self, best_lanes: Any, lane_id: str, lane_position: float, ego_min_gap: float
+        self,
+        best_lanes: Any,
+        links: Any,
+        lane_id: str,
+        lane_position: float,
+        ego_min_gap: float,
     ) -> tuple[str, float] | None:
         """The nearest vehicle ahead on the lanes the ego's lane leads into along its route
-        (`vehicle.getBestLanes`), as (id, gap less the ego's minGap) like `vehicle.getLeader`,
-        or None within the sensor range. SUMO's own search stops at a junction whose way it
-        judges closed to the ego, so that a jam standing beyond it was not seen (SUMO's ramp:
-        an off-ramp's queue, first seen at 73 m from 32 m/s). Junctions' internal lanes are
-        not counted: the gap may be short by a junction's length."""
+        (`vehicle.getBestLanes`, the junctions between them `links`, `vehicle.getNextLinks`), as
+        (id, gap less the ego's minGap) like `vehicle.getLeader`, or None within the sensor
+        range. SUMO's own search stops at a junction whose way it judges closed to the ego, so
+        that a jam standing beyond it was not seen (SUMO's ramp: an off-ramp's queue, first
+        seen at 73 m from 32 m/s). A vehicle on a junction itself is not looked for."""
         lanes = next((entry[5] for entry in best_lanes if entry[0] == lane_id), ())
         vehicle, seen = self._api.vehicle, self._lane_length(lane_id) - lane_position
-        for lane in lanes[1:]:
+        for index, lane in enumerate(lanes[1:]):
+            if index < len(links):
+                seen += links[index][7]  # the junction's lane
             if seen >= self.sensor_range:
                 return None
             on_lane = self._api.lane.getLastStepVehicleIDs(lane)
@@ -1230,8 +1241,8 @@ class SumoBackend(Backend):
             gap = distance + min_gap
         else:
             gap = distance + ego_min_gap
-            if ego_id and distance <= 0.0:
-                gap = min(gap, self._bumper_gap(ego_id, other))
+            if ego_id and distance <= 0.0:  # not below 0: it may be beside, on a junction
+                gap = min(gap, max(self._bumper_gap(ego_id, other), 0.0))
         if gap > self.sensor_range:
             return self._absent
         lateral = 0.0

@@ -13,7 +13,7 @@ from agent_client.envs.spaces import (
     make_action_encoding,
     observation_space,
 )
-from protocol.messages import ActionSchema
+from protocol.messages import ROAD_RANGE, ActionSchema
 from protocol.schema import OBSERVATION_FIELDS
 
 SCHEMA = ActionSchema(acceleration_min=-6.0, acceleration_max=3.0)
@@ -123,3 +123,4 @@ def test_bounds_come_from_the_welcome_where_it_knows_them() -> None:
     assert by_name["ego_speed"] == (0.0, MAX_SPEED)
     assert by_name["leader_speed_diff"] == (-MAX_SPEED, MAX_SPEED)
     assert by_name["ego_lane_count"][0] == 1.0
+    assert by_name["lane_end"] == by_name["stop_line"] == (0.0, ROAD_RANGE)

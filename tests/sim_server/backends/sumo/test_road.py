@@ -1,12 +1,19 @@
 """The road ahead from SUMO's best lanes (`vehicle.getBestLanes`), without SUMO: the tuples as
-libsumo gives them on a deceleration lane, an acceleration lane and a junction."""
+libsumo gives them on a deceleration lane, an acceleration lane and a junction; the stop line
+from the next link (`vehicle.getNextLinks`) and the foes with priority; a junction leader's gap
+measured from positions."""
 
 from __future__ import annotations
+
+import math
+from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from protocol.messages import ROAD_RANGE, Road
-from sim_server.backends.sumo.road import carried, road_ahead
+from sim_server.backends.sumo.backend import SumoBackend
+from sim_server.backends.sumo.road import Foe, carried, road_ahead, stop_line, yields_at
 
 # (lane id, length, occupation, offset, allows continuation, next lanes)
 BEFORE_EXIT = (
@@ -65,3 +72,77 @@ def test_on_a_junction_the_road_of_the_lane_it_came_from_is_carried_on() -> None
     assert carried(before, 4.0, 1, 3) == Road(176.0, -1, ROAD_RANGE, 176.0)  # within its lanes
     assert carried(before, 4.0, 0, 1) == Road(176.0, 0, 0.0, 0.0)
     assert carried(None, 4.0, 0, 1) == Road(ROAD_RANGE, 0, 0.0, 0.0)
+
+
+def link(state: str, is_open: bool = True, priority: bool = True) -> tuple[object, ...]:
+    """A next-links entry: (lane, has priority, is open, has foe, via, state, direction,
+    length)."""
+    return ("on_0", priority, is_open, not is_open, ":j_1_0", state, "s", 8.3)
+
+
+def test_the_stop_line_is_the_lanes_end_where_the_way_is_closed() -> None:
+    assert stop_line([link("r", is_open=False)], 42.0, 10.0, 14.0) == 42.0  # red
+    assert stop_line([link("G")], 42.0, 10.0, 14.0) == ROAD_RANGE  # green
+    assert stop_line([link("M")], 42.0, 10.0, 14.0) == ROAD_RANGE  # the major road
+    minor_closed = link("m", is_open=False, priority=False)  # foes with priority approach
+    assert stop_line([minor_closed], 42.0, 10.0, 14.0) == 42.0
+    assert stop_line([], 42.0, 10.0, 14.0) == ROAD_RANGE  # a lane that ends: no junction
+    assert stop_line([link("y")], 42.0, 10.0, 14.0) == 42.0  # 10 m/s stops in 17 m at 3 m/s²
+    assert stop_line([link("y")], 10.0, 20.0, 25.0) == ROAD_RANGE  # 20 m/s cannot: drives on
+    assert stop_line([link("r", is_open=False)], -0.5, 1.0, 14.0) == 0.0  # at the line
+
+
+def test_a_foe_with_priority_closes_the_way_while_the_ego_could_not_leave_before_it() -> None:
+    minor = [link("m", priority=False)]
+    assert yields_at(minor) == ":j_1_0"
+    assert yields_at([link("M")]) == "" and yields_at([link("m", False, False)]) == ""
+    far = Foe(distance=300.0, exit_distance=303.0, speed=25.0, ego_exit_distance=3.0)
+    near = Foe(distance=60.0, exit_distance=63.0, speed=25.0, ego_exit_distance=3.0)
+    gone = Foe(distance=-10.0, exit_distance=-7.0, speed=25.0, ego_exit_distance=3.0)
+    inside = Foe(distance=-1.0, exit_distance=2.0, speed=5.0, ego_exit_distance=3.0)
+    standing = (2.0, 0.0, 16.0)  # 2 m before the line, at rest, on a 16 m/s ramp
+    assert stop_line(minor, *standing, [far]) == ROAD_RANGE  # 12 s away: time to go
+    assert stop_line(minor, *standing, [near]) == 2.0  # 2.4 s away: it would run into the ego
+    assert stop_line(minor, *standing, [gone]) == ROAD_RANGE
+    assert stop_line(minor, *standing, [inside]) == 2.0
+    assert stop_line(minor, 30.0, 16.0, 16.0, [near]) == ROAD_RANGE  # at speed, well ahead of it
+
+
+class Positions:
+    """The vehicle queries `_nearest` makes, answered from fixed positions (SUMO's: the front
+    bumper's middle; angles clockwise from north)."""
+
+    def __init__(self, places: dict[str, tuple[float, float, float]]) -> None:
+        self.places = places
+
+    def getPosition(self, vehicle: str) -> tuple[float, float]:
+        x, y, _ = self.places[vehicle]
+        return x, y
+
+    def getAngle(self, vehicle: str) -> float:
+        return self.places[vehicle][2]
+
+    def getLength(self, vehicle: str) -> float:
+        return 5.0
+
+    def getSpeed(self, vehicle: str) -> float:
+        return 0.0
+
+
+def test_a_junction_leader_reported_at_distance_0_is_seen_at_its_measured_gap(
+    tmp_path: Path,
+) -> None:
+    """SUMO clamps a link leader's gap at 0 (read as the ego's minGap, 2.5 m): measured from
+    the positions instead, and never below 0 for one beside the ego on a junction."""
+    backend = SumoBackend(cache_dir=tmp_path)
+    places = {"ego": (0.0, 0.0, 0.0), "ahead": (0.0, 6.0, 0.0), "beside": (3.2, 3.0, 30.0)}
+    backend._api = SimpleNamespace(vehicle=Positions(places))  # type: ignore[assignment]
+    episode = SimpleNamespace(min_gaps={})
+    ahead = backend._nearest(episode, (("ahead", 0.0),), 2.5, None, "ego")  # type: ignore[arg-type]
+    assert ahead.gap == pytest.approx(1.0)  # its rear 1 m ahead of the ego's front
+    beside = backend._nearest(episode, (("beside", 0.0),), 2.5, None, "ego")  # type: ignore[arg-type]
+    assert beside.gap == 0.0 and math.isfinite(beside.gap)
+    unmeasured = backend._nearest(episode, (("ahead", 0.0),), 2.5, None)  # type: ignore[arg-type]
+    assert unmeasured.gap == 2.5
+    farther = backend._nearest(episode, (("ahead", 7.0),), 2.5, None, "ego")  # type: ignore[arg-type]
+    assert farther.gap == 9.5  # SUMO's distance where it gives one
