@@ -399,10 +399,10 @@ class Road:
     """`lane_end` of the lane to the ego's right; 0 where there is none."""
     stop_line: float = ROAD_RANGE
     """Metres to where the ego must stop now (since protocol 1.7): the next junction on its
-    route whose way is closed to it (a red light, a yellow one it can stop at, a road that must
-    give way to foes approaching with priority, a stop sign not yet stopped at); `ROAD_RANGE`
-    when there is none (the way is open, or no junction is that near). An older server's road
-    has none."""
+    route, when its way there is closed to it (a red light, a yellow one it can stop at, a road
+    that must give way to foes approaching with priority, a stop sign not yet stopped at);
+    `ROAD_RANGE` when the way is open or no junction is that near. An older server's road has
+    none."""
 
 
 OPEN_ROAD = Road(ROAD_RANGE, 0, ROAD_RANGE, ROAD_RANGE)

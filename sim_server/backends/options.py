@@ -119,7 +119,8 @@ class EpisodeOptions(ParsedOptions):
     """Seconds the ego may wait to enter; then ``insertion_failed``."""
     stop_speed: float = 1.0
     """The unreasonable stop (``stopped``): the ego slower than this (m/s), with no leader or
-    one more than `stop_gap` ahead and faster, for `stop_patience`."""
+    one more than `stop_gap` ahead and faster, for `stop_patience`; not within `stop_gap` of a
+    stop line (protocol 1.7), and `lane_end_patience` for a stop that began at one."""
     stop_gap: float = 15.0
     """Metres; see `stop_speed`."""
     stop_patience: float = 2.0
