@@ -1091,7 +1091,9 @@ class SumoBackend(Backend):
         lane_position = vehicle.getLanePosition(ego_id)
         best_lanes = vehicle.getBestLanes(ego_id)
         road = road_ahead(best_lanes, lane_id, lane_position, self._lane_length)
-        links = vehicle.getNextLinks(ego_id) if road is not None else ()
+        onward = next((entry[5] for entry in best_lanes if entry[0] == lane_id), ())
+        # A junction ahead on the route only where the lane leads into another (not on `cf`).
+        links = vehicle.getNextLinks(ego_id) if road is not None and len(onward) > 1 else ()
         if road is not None:
             to_junction = self._lane_length(lane_id) - lane_position
             foes = self._priority_foes(ego_id, yields_at(links), to_junction)
@@ -1106,7 +1108,7 @@ class SumoBackend(Backend):
         sensed = self.sensor_range
         leader = vehicle.getLeader(ego_id, sensed)
         if not leader or not leader[0]:
-            leader = self._leader_beyond(best_lanes, links, lane_id, lane_position, ego_min_gap)
+            leader = self._leader_beyond(onward, links, lane_id, lane_position, ego_min_gap)
         follower = vehicle.getFollower(ego_id, sensed)
         # SUMO finds no neighbour where there is no lane: on a built-in road, skip those queries.
         left = not episode.one_way or lane + 1 < lane_count
@@ -1173,21 +1175,21 @@ class SumoBackend(Backend):
 
     def _leader_beyond(
         self,
-        best_lanes: Any,
+        onward: Any,
         links: Any,
         lane_id: str,
         lane_position: float,
         ego_min_gap: float,
     ) -> tuple[str, float] | None:
         """The nearest vehicle ahead on the lanes the ego's lane leads into along its route
-        (`vehicle.getBestLanes`, the junctions between them `links`, `vehicle.getNextLinks`), as
+        (`onward`, its own first: its best lanes' next lanes, `vehicle.getBestLanes`; the
+        junctions between them `links`, `vehicle.getNextLinks`), as
         (id, gap less the ego's minGap) like `vehicle.getLeader`, or None within the sensor
         range. SUMO's own search stops at a junction whose way it judges closed to the ego, so
         that a jam standing beyond it was not seen (SUMO's ramp: an off-ramp's queue, first
         seen at 73 m from 32 m/s). A vehicle on a junction itself is not looked for."""
-        lanes = next((entry[5] for entry in best_lanes if entry[0] == lane_id), ())
         vehicle, seen = self._api.vehicle, self._lane_length(lane_id) - lane_position
-        for index, lane in enumerate(lanes[1:]):
+        for index, lane in enumerate(onward[1:]):
             if index < len(links):
                 seen += links[index][7]  # the junction's lane
             if seen >= self.sensor_range:
