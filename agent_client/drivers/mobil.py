@@ -43,6 +43,8 @@ JERK_LIMIT = 5.0
 """m/s³: how fast the acceleration changes from one decision to the next, unless braking at
 `MobilParams.stop_deceleration` or harder: under the 5.6 m/s³ a passenger notices
 (docs/evaluation.md)."""
+URGENT_TIME = 6.0
+"""s: see `MobilParams.urgent_distance`."""
 DECISION_INTERVAL = 0.1
 """s: the decision interval assumed until two observations have shown it."""
 
@@ -76,7 +78,8 @@ class MobilParams:
     strategic_margin: float = 100.0
     """m: see `strategic_time`."""
     urgent_distance: float = 150.0
-    """m: this close to the lane end, the ego also follows the leader of the target lane."""
+    """m: this close to the lane end (or `URGENT_TIME` at its speed, if farther), the ego asks
+    for the change the route needs at every decision, whatever the gap."""
     decision_interval: float = 1.0
     """s between two discretionary lane decisions."""
     stop_deceleration: float = 3.0
@@ -130,9 +133,17 @@ class IDMMobilDriver:
 
     def acceleration(self, obs: Observation, interval: float = DECISION_INTERVAL) -> float:
         """The acceleration alone (m/s²) for decisions every `interval` seconds, which keeps no
-        state: IDM behind the leader, before the end of a lane the route must leave, and into
-        the gap beside it where the change the route needs cannot be made yet (what a policy
-        trained on top of this driver corrects, `agent_client.drivers.policy.ActionScale`)."""
+        state: `wanted_acceleration`, changed at a comfortable jerk unless braking hard."""
+        acceleration = self.wanted_acceleration(obs)
+        if acceleration <= -self.mobil.stop_deceleration:
+            return acceleration  # braking hard: at once
+        return jerk_limited(acceleration, obs.ego.acceleration, interval)
+
+    def wanted_acceleration(self, obs: Observation) -> float:
+        """The acceleration (m/s²) this driver wants before its jerk limit: IDM behind the
+        leader, before the end of a lane the route must leave, and into the gap beside it where
+        the change the route needs cannot be made yet (what a policy trained on top of this
+        driver corrects, `agent_client.drivers.policy.ActionScale`)."""
         road = road_ahead(obs)
         ego = obs.ego
         must = _sign(road.lanes_to_change)
@@ -142,9 +153,20 @@ class IDMMobilDriver:
             acceleration = min(acceleration, self._stop_before(road.lane_end, ego.speed))
         if not ego.changing_lane and self._strategic(obs, road) and not self._fits(obs, must):
             acceleration = min(acceleration, self._fit_in(obs, must))
-        if acceleration <= -self.mobil.stop_deceleration:
-            return acceleration  # braking hard: at once
-        return jerk_limited(acceleration, ego.acceleration, interval)  # else a comfortable jerk
+        return acceleration
+
+    def route_at_stake(self, obs: Observation) -> float:
+        """How close the ego is to failing its route, from 0 (no change needed, or more than
+        twice the urgent distance per lane to cross away) to 1 (within the urgent distance per
+        lane: the change must be made now). A residual policy's correction fades out over it
+        (`agent_client.drivers.policy.ActionScale`): where the route is at stake, this
+        driver, which reaches the end of its route, drives."""
+        road = road_ahead(obs)
+        lanes = abs(road.lanes_to_change)
+        if not lanes:
+            return 0.0
+        urgent = lanes * max(self.mobil.urgent_distance, obs.ego.speed * URGENT_TIME)
+        return min(max(2.0 - road.lane_end / urgent, 0.0), 1.0)
 
     def _strategic(self, obs: Observation, road: Road) -> bool:
         """The route needs a change within the look-ahead."""
@@ -153,7 +175,7 @@ class IDMMobilDriver:
 
     def _urgent(self, obs: Observation, road: Road) -> bool:
         """Near enough to the lane end to ask at every decision whatever the gap."""
-        return road.lane_end <= max(self.mobil.urgent_distance, obs.ego.speed * 6.0)
+        return road.lane_end <= max(self.mobil.urgent_distance, obs.ego.speed * URGENT_TIME)
 
     # ----------------------------------------------------------------------- longitudinal
 

@@ -27,43 +27,58 @@ RESIDUAL_RANGE = 2.0
 STOP_DECELERATION = MobilParams().stop_deceleration
 """m/s²: harder braking than this is applied at once, as the reference applies it."""
 
-RESIDUAL_BASES: dict[str, Callable[[Observation, float], float]] = {
-    "idm+mobil": IDMMobilDriver().acceleration,
+
+@dataclass(frozen=True)
+class Reference:
+    """A driver a residual policy is trained on top of, in the three parts it needs, none of
+    which keeps state."""
+
+    acceleration: Callable[[Observation], float]
+    """The acceleration it wants (m/s²), before its jerk limit."""
+    lane_change: Callable[[Observation, bool], int]
+    """Its lane change (`LaneChoice.reference`): a residual policy changes lanes as it does."""
+    route_at_stake: Callable[[Observation], float]
+    """From 0 to 1: how far the policy's correction fades out, so that where its route is at
+    stake the reference, which reaches the end of its route, drives."""
+
+
+_IDM_MOBIL = IDMMobilDriver()
+REFERENCES: dict[str, Reference] = {
+    "idm+mobil": Reference(
+        _IDM_MOBIL.wanted_acceleration, _IDM_MOBIL.lane_change, _IDM_MOBIL.route_at_stake
+    ),
 }
-"""The drivers a policy can be trained on top of: their acceleration, which keeps no state."""
-RESIDUAL_LANES: dict[str, Callable[[Observation, bool], int]] = {
-    "idm+mobil": IDMMobilDriver().lane_change,
-}
-"""A residual policy's lane changes: its reference's (`LaneChoice.reference`)."""
+"""The drivers a policy can be trained on top of."""
 
 
 def lane_choice(n_choices: int, every: int, gap_rule: bool, residual: str = "") -> LaneChoice:
     """The lane choice of a policy; a residual one changes lanes as its reference does."""
-    reference = RESIDUAL_LANES[residual] if residual and n_choices > 1 else None
+    reference = REFERENCES[residual].lane_change if residual and n_choices > 1 else None
     return LaneChoice(n_choices, every, gap_rule, reference)
 
 
 @dataclass(frozen=True)
 class ActionScale:
     """Maps the actor's [-1, 1] onto an acceleration (m/s^2): the server's bounds, or with
-    `residual` a correction of up to ±`RESIDUAL_RANGE` of a reference driver's acceleration
+    `residual` a correction of up to ±`RESIDUAL_RANGE` of what a reference driver wants
     (residual policy learning, Silver et al. 2018, Johannink et al. 2019: the policy starts as
     good as the reference, IDM + MOBIL on roads where lanes end, and learns what to do better),
     changed from one decision to the next no faster than the reference's own jerk limit unless
-    braking hard."""
+    braking hard. The correction fades out where the reference says the route is at stake
+    (`Reference.route_at_stake`; a shield, Alshiekh et al. 2018): close to the end of a lane the
+    route must leave, the reference alone drives, so that what the policy learned elsewhere
+    cannot make it miss a merge or an exit on a road it never saw."""
 
     low: float
     high: float
     residual: str = ""
-    """"" (the acceleration itself), or a key of `RESIDUAL_BASES`."""
+    """"" (the acceleration itself), or a key of `REFERENCES`."""
     interval: float = DECISION_INTERVAL
     """Seconds per decision (with `residual`: the jerk limit's time step)."""
 
     def __post_init__(self) -> None:
-        if self.residual and self.residual not in RESIDUAL_BASES:
-            raise ValueError(
-                f"residual {self.residual!r} is not one of: {', '.join(RESIDUAL_BASES)}"
-            )
+        if self.residual and self.residual not in REFERENCES:
+            raise ValueError(f"residual {self.residual!r} is not one of: {', '.join(REFERENCES)}")
 
     @classmethod
     def from_schema(
@@ -76,20 +91,29 @@ class ActionScale:
         if not self.residual:
             return self.low + (u + 1.0) * 0.5 * (self.high - self.low)
         assert obs is not None, "a residual policy's action depends on the observation"
-        wanted = RESIDUAL_BASES[self.residual](obs, self.interval) + RESIDUAL_RANGE * u
+        reference = REFERENCES[self.residual]
+        wanted = reference.acceleration(obs) + self._reach(obs) * u
         if wanted > -STOP_DECELERATION:  # as the reference's own: a comfortable jerk at most
             wanted = jerk_limited(wanted, obs.ego.acceleration, self.interval)
         return min(max(wanted, self.low), self.high)
 
     def to_policy(self, acceleration: float, obs: Observation | None = None) -> float:
-        """The actor's `u` that gives `acceleration` in the state `obs` (clipped to [-1, 1])."""
-        if self.residual:
-            assert obs is not None, "a residual policy's action depends on the observation"
-            base = RESIDUAL_BASES[self.residual](obs, self.interval)
-            u = (acceleration - base) / RESIDUAL_RANGE
-        else:
+        """The actor's `u` that gives `acceleration` in the state `obs` (clipped to [-1, 1]);
+        with `residual`, 0 wherever the reference itself gives it (within its jerk limit,
+        or where the correction has faded out)."""
+        if not self.residual:
             u = 2.0 * (acceleration - self.low) / (self.high - self.low) - 1.0
+            return min(1.0, max(-1.0, u))
+        assert obs is not None, "a residual policy's action depends on the observation"
+        reach = self._reach(obs)
+        if reach <= 0.0 or abs(self.to_env(0.0, obs) - acceleration) < 1e-9:
+            return 0.0
+        u = (acceleration - REFERENCES[self.residual].acceleration(obs)) / reach
         return min(1.0, max(-1.0, u))
+
+    def _reach(self, obs: Observation) -> float:
+        """m/s²: how far a residual policy's correction reaches in `obs` (at u = ±1)."""
+        return RESIDUAL_RANGE * (1.0 - REFERENCES[self.residual].route_at_stake(obs))
 
 
 class PolicyDriver:

@@ -19,7 +19,15 @@ from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap, FeatureMismatch
 from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.td3 import Agent, TD3Config
-from protocol.messages import ActionSchema, Ego, Neighbour, Neighbours
+from protocol.messages import (
+    ROAD_RANGE,
+    ActionSchema,
+    Ego,
+    Neighbour,
+    Neighbours,
+    Observation,
+    Road,
+)
 from tests.protocol.test_codec import make_observation
 
 
@@ -49,7 +57,45 @@ def test_a_residual_action_corrects_the_reference_within_a_comfortable_jerk() ->
     free = IDMMobilDriver().acceleration(obs, 1.0)  # 5 m/s³ over 1 s: IDM's own, unlimited
     assert one_second.to_env(-1.0, obs) == pytest.approx(free - RESIDUAL_RANGE)
     assert scale.to_policy(reference, obs) == pytest.approx(0.0)
-    assert scale.to_policy(reference + RESIDUAL_RANGE / 2, obs) == pytest.approx(0.5)
+    assert one_second.to_policy(free + RESIDUAL_RANGE / 2, obs) == pytest.approx(0.5)
+
+
+def test_a_residual_correction_is_bounded_around_what_the_reference_wants() -> None:
+    """An ego accelerating while its reference wants to brake: the correction reaches no
+    further than RESIDUAL_RANGE above what the reference wants, however the jerk limit
+    carries the acceleration it has (a policy cannot hold it there decision after decision)."""
+    leader = Neighbour(True, 50.0, 0.0, 14.0, "veh.1")  # closing in: IDM brakes, not hard
+    obs = make_observation(
+        ego=Ego(20.0, 2.5, 0, 1, 120.0, 25.0), neighbours=replace(free_road(), leader=leader)
+    )
+    wanted = IDMMobilDriver().wanted_acceleration(obs)
+    assert -3.0 < wanted < -RESIDUAL_RANGE / 2
+    one_second = ActionScale(-6.0, 3.0, residual="idm+mobil", interval=1.0)
+    assert one_second.to_env(1.0, obs) == pytest.approx(wanted + RESIDUAL_RANGE)
+    scale = ActionScale(-6.0, 3.0, residual="idm+mobil")  # 0.1 s: the most it asks falls
+    assert scale.to_env(1.0, obs) == pytest.approx(obs.ego.acceleration - JERK_LIMIT * 0.1)
+
+
+def merging(lane_end: float, speed: float = 20.0) -> Observation:
+    """An ego on an acceleration lane `lane_end` m before its end, beside a lane of traffic."""
+    left = Neighbour(True, 30.0, 3.2, 20.0, "veh.2")
+    return make_observation(
+        ego=Ego(speed, 0.0, 0, 2, 120.0, 25.0),
+        neighbours=replace(free_road(), left_leader=left),
+        road=Road(lane_end, 1, ROAD_RANGE, 0.0),
+    )
+
+
+def test_a_residual_correction_fades_out_where_the_route_is_at_stake() -> None:
+    scale = ActionScale(-6.0, 3.0, residual="idm+mobil", interval=1.0)
+    reach = [scale.to_env(1.0, merging(d)) - scale.to_env(-1.0, merging(d)) for d in (400, 225)]
+    assert reach == pytest.approx([2 * RESIDUAL_RANGE, RESIDUAL_RANGE])  # from 300 m to 150
+    near = merging(120.0)
+    reference = IDMMobilDriver().acceleration(near, 1.0)
+    assert scale.to_env(1.0, near) == scale.to_env(-1.0, near) == pytest.approx(reference)
+    assert scale.to_policy(reference, near) == scale.to_policy(2.0, near) == 0.0
+    three_lanes = replace(near, road=Road(400.0, -3, ROAD_RANGE, 0.0))  # 150 m per lane
+    assert scale.to_env(1.0, three_lanes) == scale.to_env(-1.0, three_lanes)
 
 
 def test_a_residual_action_brakes_hard_at_once_and_within_the_bounds() -> None:
