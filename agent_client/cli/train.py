@@ -75,8 +75,15 @@ def add_parser(commands: Commands) -> None:
         metavar="ADDRESS",
         help="a server for the greedy evaluations, which then run in the background while "
         "training goes on (start it with --idle-priority; --set eval_while_training=false: "
-        "training waits for them; repeatable; default: evaluate on the --server(s), training "
-        "waiting)",
+        "training waits for them; repeatable; default: a simulator this command starts for "
+        "itself at idle priority where it offers the run's scenarios as the --server does, "
+        "else the --server, training waiting)",
+    )
+    train.add_argument(
+        "--inline-evaluations",
+        action="store_true",
+        help="without --eval-server: evaluate on the training --server, training waiting, "
+        "instead of on a simulator of their own",
     )
     train.add_argument("--resume", type=Path, metavar="RUN", help="continue runs/NAME")
     train.add_argument(
@@ -217,6 +224,8 @@ def run(args: argparse.Namespace) -> int:
             if config.eval_every > 0 and not eval_servers:
                 evaluations = _own_simulator(config.simulator_args + " --idle-priority")
                 eval_servers = [stack.enter_context(evaluations)]
+        elif config.eval_every > 0 and not eval_servers and not args.inline_evaluations:
+            eval_servers = _evaluation_simulator(stack, servers[0], config, args, reporter)
         trainer = Trainer(
             config,
             servers,
@@ -238,6 +247,26 @@ def _own_simulator(args: str) -> Iterator[str]:
 
     with OwnSimulator(args) as simulator:
         yield simulator.address
+
+
+def _evaluation_simulator(
+    stack: contextlib.ExitStack,
+    server: str,
+    config: TrainConfig,
+    args: argparse.Namespace,
+    reporter: BarReporter,
+) -> list[str]:
+    """Where a run without --eval-server evaluates: a simulator of its own where one started
+    here serves the run's scenarios as `server` does (the recommended setup: evaluations in
+    the background, docs/learner.md), else inline on the training servers ([])."""
+    from agent_client.training.simulators import evaluation_simulator
+
+    simulator, line = evaluation_simulator(server, config.scenarios, args.timeout)
+    reporter.message(line)
+    if simulator is None:
+        return []
+    stack.callback(simulator.close)
+    return [simulator.address]
 
 
 def _train(trainer: Trainer, reporter: BarReporter, out: Path, resumed: bool) -> int:

@@ -2,10 +2,13 @@
 
 Where Ray places a sampling worker (or an RLlib env runner), the worker starts the simulator it
 drives beside it: no address to pass, none exposed (an ipc socket in a directory only this user
-may enter). The server runs with ``--exit-with-parent``, so it stops with the process that
-started it however that one ends (closed, killed by Ray, SIGKILL), and `OwnSimulator.close`
-stops it at once. The server is another program (`sim-server`, from this environment), started
-as a process: the learner imports nothing of it.
+may enter). A run given no evaluation server starts one for its evaluations, in the kernel's
+idle class, where it offers the run's scenarios as the training server does
+(`evaluation_simulator`): they then run in the background, as the recommended setup runs them.
+The server runs with ``--exit-with-parent``, so it stops with the process that started it
+however that one ends (closed, killed by Ray, SIGKILL), and `OwnSimulator.close` stops it at
+once. The server is another program (`sim-server`, from this environment), started as a process:
+the learner imports nothing of it.
 """
 
 from __future__ import annotations
@@ -15,8 +18,11 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Sequence
 
+from agent_client.envs.link import open_channel, say_goodbye
 from agent_client.errors import BridgeError
+from protocol.messages import Welcome
 from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
 READY_TIMEOUT_S = 180.0
@@ -61,3 +67,74 @@ class OwnSimulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+EVALUATION_BACKENDS = ("sumo", "highway", "fake")
+"""The backends whose scenarios a simulator started here can offer as the user's server does
+(a replay needs its recording; a ``--sumocfg`` network shows as a scenario only that server
+has, and is caught by the comparison)."""
+
+
+def evaluation_simulator(
+    server: str, scenarios: Sequence[str], timeout_s: float
+) -> tuple[OwnSimulator | None, str]:
+    """A simulator of its own for a run's evaluations, in the kernel's idle class, where it
+    offers `scenarios` as the training `server` does (backend, its version, the scenarios with
+    their options, the action bounds and the sensor range); else None. Either way, a line that
+    says where the evaluations will run."""
+    inline = "evaluations: on the training server, training waiting"
+    try:
+        training = welcome_of(server, timeout_s)
+    except BridgeError as exc:
+        return None, f"{inline} ({server} did not answer a handshake: {exc})"
+    if training.backend not in EVALUATION_BACKENDS:
+        return None, f"{inline} (no simulator of backend {training.backend!r} can start here)"
+    args = f"--backend {training.backend} --idle-priority"
+    try:
+        simulator = OwnSimulator(args)
+    except SimulatorFailed as exc:
+        return None, f"{inline} ({exc})"
+    try:
+        difference = serving_differently(
+            training, welcome_of(simulator.address, timeout_s), scenarios
+        )
+    except BridgeError as exc:
+        difference = str(exc)
+    if difference:
+        simulator.close()
+        return None, f"{inline} (a simulator started here differs from {server}: {difference})"
+    return simulator, (
+        f"evaluations: in the background on a simulator of their own (sim-server {args}; "
+        "--eval-server ADDRESS chooses one, --inline-evaluations keeps them on the training "
+        "server)"
+    )
+
+
+def welcome_of(address: str, timeout_s: float) -> Welcome:
+    """The welcome of the server at `address` (a handshake, then goodbye: it stays free)."""
+    channel = open_channel(address, timeout_s, None, None)
+    try:
+        return channel.hello(timeout_s)
+    finally:
+        say_goodbye(channel)
+
+
+def serving_differently(training: Welcome, own: Welcome, scenarios: Sequence[str]) -> str:
+    """ "" where `own` serves `scenarios` as `training` does, else the first difference."""
+    for what, theirs, ours in (
+        ("backend", training.backend, own.backend),
+        ("backend version", training.backend_version, own.backend_version),
+        ("protocol", training.protocol, own.protocol),
+        ("action bounds", training.action, own.action),
+        ("sensor range", training.sensor_range, own.sensor_range),
+    ):
+        if theirs != ours:
+            return f"{what} {ours} here, {theirs} there"
+    offered = {info.name: info for info in training.scenarios}
+    mine = {info.name: info for info in own.scenarios}
+    for name in scenarios:
+        if name not in mine:
+            return f"scenario {name!r} is not offered here"
+        if mine[name] != offered.get(name):
+            return f"scenario {name!r} has other options or another step length here"
+    return ""

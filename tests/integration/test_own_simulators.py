@@ -19,7 +19,13 @@ import pytest
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.training.run_log import read_rows
 from agent_client.training.sampler import SamplingWorker, Settings
-from agent_client.training.simulators import OwnSimulator, SimulatorFailed
+from agent_client.training.simulators import (
+    OwnSimulator,
+    SimulatorFailed,
+    evaluation_simulator,
+    welcome_of,
+)
+from tests.conftest import RunningServer
 from tests.integration.test_ray_sampling import spec as ray_spec
 from tests.integration.test_train import wait_for_episodes
 from tests.integration.test_workers import alive
@@ -147,3 +153,43 @@ def test_the_simulators_do_not_outlive_a_stopped_or_killed_learner(
         assert process.returncode == 0
         assert (tmp_path / "run" / "checkpoint.pt").exists()
     wait_until_gone(tmp_path, 60.0)
+
+
+def test_a_run_without_an_evaluation_server_evaluates_on_one_of_its_own(
+    fake_server: RunningServer, tmp_path: Path
+) -> None:
+    """`agent-client train` with nothing but a --server: the evaluations run in the background
+    on a simulator the command starts (the recommended setup), which stops with the run."""
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    command = [
+        sys.executable, "-m", "agent_client", "train", "--server", fake_server.address,
+        "--scenario", "cf", "--out", str(tmp_path / "run"), "--episodes", "4",
+        "--set", "eval_every=2", "--set", "eval_episodes=1", "--set", "eval_gate=0",
+        "--set", "learner.learning_starts=50", "--set", "learner.compile=false",
+    ]  # fmt: skip
+    result = subprocess.run(
+        command, capture_output=True, text=True, env=env, timeout=300, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    assert "in the background on a simulator of their own" in result.stdout + result.stderr
+    assert len(read_rows(tmp_path / "run" / "evaluations.csv")) >= 1
+    assert simulators_under(tmp_path) == []
+
+
+def test_an_evaluation_simulator_is_started_only_where_it_serves_as_the_training_one(
+    fake_server: RunningServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    simulator, line = evaluation_simulator(fake_server.address, ["cf"], 10.0)
+    assert simulator is not None and "in the background" in line
+    try:
+        assert simulators_under(tmp_path) == [simulator.process.pid]
+        assert welcome_of(simulator.address, 10.0).backend == "fake"
+    finally:
+        simulator.close()
+    simulator, line = evaluation_simulator(fake_server.address, ["cf", "nosuch"], 10.0)
+    assert simulator is None
+    assert "on the training server" in line and "'nosuch' is not offered" in line
+    assert simulators_under(tmp_path) == []  # the one that did not fit is gone
+    simulator, line = evaluation_simulator("tcp://127.0.0.1:9", ["cf"], 0.5)
+    assert simulator is None and "did not answer" in line
