@@ -82,7 +82,7 @@ def evaluation_simulator(
     offers `scenarios` as the training `server` does (backend, its version, the scenarios with
     their options, the action bounds and the sensor range); else None. Either way, a line that
     says where the evaluations will run."""
-    inline = "evaluations: on the training server, training waiting"
+    inline = "evaluation simulator: none of its own, the evaluations run on the training server"
     try:
         training = welcome_of(server, timeout_s)
     except BridgeError as exc:
@@ -104,9 +104,9 @@ def evaluation_simulator(
         simulator.close()
         return None, f"{inline} (a simulator started here differs from {server}: {difference})"
     return simulator, (
-        f"evaluations: in the background on a simulator of their own (sim-server {args}; "
-        "--eval-server ADDRESS chooses one, --inline-evaluations keeps them on the training "
-        "server)"
+        f"evaluation simulator: its own (sim-server {args}), the evaluations run there in the "
+        "background (--eval-server ADDRESS chooses one, --inline-evaluations keeps them on the "
+        "training server)"
     )
 
 

@@ -171,7 +171,7 @@ def test_a_run_without_an_evaluation_server_evaluates_on_one_of_its_own(
         command, capture_output=True, text=True, env=env, timeout=300, check=False
     )
     assert result.returncode == 0, result.stderr
-    assert "in the background on a simulator of their own" in result.stdout + result.stderr
+    assert "evaluation simulator: its own" in result.stdout + result.stderr
     assert len(read_rows(tmp_path / "run" / "evaluations.csv")) >= 1
     assert simulators_under(tmp_path) == []
 
@@ -181,7 +181,7 @@ def test_an_evaluation_simulator_is_started_only_where_it_serves_as_the_training
 ) -> None:
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     simulator, line = evaluation_simulator(fake_server.address, ["cf"], 10.0)
-    assert simulator is not None and "in the background" in line
+    assert simulator is not None and "run there in the background" in line
     try:
         assert simulators_under(tmp_path) == [simulator.process.pid]
         assert welcome_of(simulator.address, 10.0).backend == "fake"
@@ -189,7 +189,7 @@ def test_an_evaluation_simulator_is_started_only_where_it_serves_as_the_training
         simulator.close()
     simulator, line = evaluation_simulator(fake_server.address, ["cf", "nosuch"], 10.0)
     assert simulator is None
-    assert "on the training server" in line and "'nosuch' is not offered" in line
+    assert "run on the training server" in line and "'nosuch' is not offered" in line
     assert simulators_under(tmp_path) == []  # the one that did not fit is gone
     simulator, line = evaluation_simulator("tcp://127.0.0.1:9", ["cf"], 0.5)
     assert simulator is None and "did not answer" in line
