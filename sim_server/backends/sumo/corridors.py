@@ -41,8 +41,8 @@ from sim_server.backends.sumo.scenarios import (
     write_scenario,
 )
 
-MOTORWAY_SPEED = 100 / 3.6
-"""The corridors' motorway speed limit (m/s)."""
+MOTORWAY_SPEEDS = (80 / 3.6, 100 / 3.6, 120 / 3.6)
+"""The motorway speed limits a seed draws from (m/s): a policy meets 80-120 km/h, not one."""
 RAMP_SPEED = 80 / 3.6
 """Their ramps' speed limit (m/s)."""
 DOWNSTREAM = 500.0
@@ -76,6 +76,8 @@ class MergeOptions(ParsedOptions):
     """Length of the ramp before it (m; 0: drawn from 150-350 m)."""
     ramp_flow: float = 300.0
     """Vehicles per hour entering from the ramp (the motorway's is ``flow`` per lane)."""
+    motorway_speed: float = 0.0
+    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h; the ramps' is 80)."""
     ego_start: str = "ramp"
     """Where the ego enters: ``ramp`` (it must merge) or ``main`` (the merging traffic comes in
     beside it)."""
@@ -85,6 +87,7 @@ class MergeOptions(ParsedOptions):
         "acceleration_lane": Bounds(0.0, 2000.0, unit=" m"),
         "ramp_length": Bounds(0.0, 2000.0, unit=" m"),
         "ramp_flow": Bounds(0.0, 3600.0, unit=" veh/h"),
+        "motorway_speed": Bounds(0.0, 70.0, unit=" m/s"),
     }
 
     def check(self) -> None:
@@ -105,6 +108,8 @@ class ExitOptions(ParsedOptions):
     """Metres from the ego's start to where the off-ramp leaves (0: drawn from 600-1200 m)."""
     deceleration_lane: float = 0.0
     """Length of the deceleration lane before it (m; 0: drawn, 100 or 200 m)."""
+    motorway_speed: float = 0.0
+    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h; the ramps' is 80)."""
     exit_share: float = 0.2
     """Share of the human traffic that takes the exit."""
     ego_lane: int = -1
@@ -116,6 +121,7 @@ class ExitOptions(ParsedOptions):
         "exit_distance": Bounds(0.0, 10_000.0, unit=" m"),
         "deceleration_lane": Bounds(0.0, 1000.0, unit=" m"),
         "exit_share": Bounds(0.0, 1.0, text="within [0, 1]"),
+        "motorway_speed": Bounds(0.0, 70.0, unit=" m/s"),
         "ego_lane": Bounds(-1, 3),
     }
 
@@ -140,11 +146,14 @@ class LaneDropOptions(ParsedOptions):
     """Metres from the ego's start to where the lane ends (0: drawn from 400-1000 m)."""
     dropped_lane: str = "random"
     """Which of the three lanes ends: ``left``, ``right`` or ``random`` (drawn)."""
+    motorway_speed: float = 0.0
+    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h; the ramps' is 80)."""
     ego_lane: int = -1
     """The ego's lane at its start, 0 the rightmost (-1: random)."""
 
     BOUNDS: ClassVar[Mapping[str, Bounds]] = {
         "drop_distance": Bounds(0.0, 10_000.0, unit=" m"),
+        "motorway_speed": Bounds(0.0, 70.0, unit=" m/s"),
         "ego_lane": Bounds(-1, 2),
     }
 
@@ -240,6 +249,7 @@ def merge_network(own: MergeOptions, traffic: TrafficOptions, draw: random.Rando
     lanes = own.main_lanes or draw.choice(MERGE_LANES)
     accel = own.acceleration_lane or draw.choice(ACCELERATION_LANES)
     ramp = own.ramp_length or draw.choice(RAMP_LENGTHS)
+    speed = own.motorway_speed or draw.choice(MOTORWAY_SPEEDS)
     upstream = ramp + 150.0
     merge_x = upstream
     nodes = [
@@ -250,10 +260,10 @@ def merge_network(own: MergeOptions, traffic: TrafficOptions, draw: random.Rando
         ("down", merge_x + accel + DOWNSTREAM, 0.0),
     ]
     edges = [
-        ("main_up", "up", "merge_start", lanes, MOTORWAY_SPEED, upstream),
+        ("main_up", "up", "merge_start", lanes, speed, upstream),
         ("ramp", "ramp_start", "merge_start", 1, RAMP_SPEED, ramp),
-        ("merge", "merge_start", "merge_end", lanes + 1, MOTORWAY_SPEED, accel),
-        ("main_down", "merge_end", "down", lanes, MOTORWAY_SPEED, DOWNSTREAM),
+        ("merge", "merge_start", "merge_end", lanes + 1, speed, accel),
+        ("main_down", "merge_end", "down", lanes, speed, DOWNSTREAM),
     ]
     connections = [
         ("ramp", "merge", 0, 0),
@@ -275,6 +285,7 @@ def exit_network(own: ExitOptions, traffic: TrafficOptions, draw: random.Random)
     lanes = own.main_lanes or draw.choice(EXIT_LANES)
     distance = own.exit_distance or draw.choice(EXIT_DISTANCES)
     decel = own.deceleration_lane or draw.choice(DECELERATION_LANES)
+    speed = own.motorway_speed or draw.choice(MOTORWAY_SPEEDS)
     main_length = distance - decel
     diverge = distance
     off = 250.0
@@ -286,9 +297,9 @@ def exit_network(own: ExitOptions, traffic: TrafficOptions, draw: random.Random)
         ("exit_end", diverge + off, -off * RAMP_ANGLE),
     ]
     edges = [
-        ("main", "start", "decel_start", lanes, MOTORWAY_SPEED, main_length),
-        ("decel", "decel_start", "diverge", lanes + 1, MOTORWAY_SPEED, decel),
-        ("main_down", "diverge", "end", lanes, MOTORWAY_SPEED, DOWNSTREAM),
+        ("main", "start", "decel_start", lanes, speed, main_length),
+        ("decel", "decel_start", "diverge", lanes + 1, speed, decel),
+        ("main_down", "diverge", "end", lanes, speed, DOWNSTREAM),
         ("off_ramp", "diverge", "exit_end", 1, RAMP_SPEED, off),
     ]
     connections = [
@@ -311,10 +322,11 @@ def lane_drop_network(
     """``up`` (3 lanes), whose left or right lane ends, then ``down`` (2)."""
     distance = own.drop_distance or draw.choice(DROP_DISTANCES)
     dropped = own.dropped_lane if own.dropped_lane != "random" else draw.choice(DROPPED_LANES)
+    speed = own.motorway_speed or draw.choice(MOTORWAY_SPEEDS)
     nodes = [("start", 0.0, 0.0), ("drop", distance, 0.0), ("end", distance + DOWNSTREAM, 0.0)]
     edges = [
-        ("up", "start", "drop", 3, MOTORWAY_SPEED, distance),
-        ("down", "drop", "end", 2, MOTORWAY_SPEED, DOWNSTREAM),
+        ("up", "start", "drop", 3, speed, distance),
+        ("down", "drop", "end", 2, speed, DOWNSTREAM),
     ]
     first = 0 if dropped == "left" else 1  # the lanes of ``up`` that go on
     connections = [("up", "down", first + i, i) for i in range(2)]
@@ -370,7 +382,7 @@ CORRIDORS: dict[str, CorridorScenario] = {
         CorridorScenario(
             "merge",
             "on-ramp: the ego enters from a ramp and must merge from its acceleration lane onto "
-            "a motorway of 2-3 lanes (100 km/h, 1000 veh/h/lane); geometry drawn per seed",
+            "a motorway of 2-3 lanes (80-120 km/h, 1000 veh/h/lane); geometry drawn per seed",
             "merge",
         ),
         CorridorScenario(
