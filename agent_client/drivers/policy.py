@@ -22,7 +22,8 @@ from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
 from protocol.messages import ActionSchema, Observation
 
 RESIDUAL_RANGE = 2.0
-"""m/s²: how far a residual policy's acceleration may stray from its reference's (±)."""
+"""m/s²: how far a residual policy's acceleration may stray from what its reference wants (±),
+where the route is not at stake (`Reference.route_at_stake`)."""
 
 STOP_DECELERATION = MobilParams().stop_deceleration
 """m/s²: harder braking than this is applied at once, as the reference applies it."""
