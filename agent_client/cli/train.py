@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from agent_client.cli.common import Commands, add_connection_arguments, existing_folder
 from agent_client.defaults import DEFAULT_SCENARIO
+from agent_client.errors import UsageError
 from agent_client.rl.rewards import REWARDS
 from protocol.transport.endpoint import DEFAULT_ADDRESS
 
@@ -207,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
     from agent_client.training.config import TrainConfig, apply_overrides
     from agent_client.training.trainer import Trainer
 
+    if args.inline_evaluations and args.eval_server:
+        raise UsageError("--inline-evaluations and --eval-server: choose one")
     if args.resume is not None:
         saved = json.loads((existing_folder(args.resume, "--resume") / "config.json").read_text())
         config = TrainConfig.from_dict(saved)
@@ -221,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         servers, eval_servers = args.server or [DEFAULT_ADDRESS], args.eval_server
         if config.simulators and not args.server:  # the workers start theirs; the rest here
             servers = [stack.enter_context(_own_simulator(config.simulator_args))]
-            if config.eval_every > 0 and not eval_servers:
+            if config.eval_every > 0 and not eval_servers and not args.inline_evaluations:
                 evaluations = _own_simulator(config.simulator_args + " --idle-priority")
                 eval_servers = [stack.enter_context(evaluations)]
         elif config.eval_every > 0 and not eval_servers and not args.inline_evaluations:
@@ -261,12 +264,14 @@ def _evaluation_simulator(
     the background, docs/learner.md), else inline on the training servers ([])."""
     from agent_client.training.simulators import evaluation_simulator
 
-    simulator, line = evaluation_simulator(server, config.scenarios, args.timeout)
-    reporter.message(line)
-    if simulator is None:
-        return []
-    stack.callback(simulator.close)
-    return [simulator.address]
+    simulator, line = evaluation_simulator(
+        server, config.scenarios, args.timeout, idle=config.eval_while_training
+    )
+    if simulator is not None:
+        stack.callback(simulator.close)
+    if line:
+        reporter.message(line)
+    return [] if simulator is None else [simulator.address]
 
 
 def _train(trainer: Trainer, reporter: BarReporter, out: Path, resumed: bool) -> int:

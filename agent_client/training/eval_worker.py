@@ -300,7 +300,7 @@ def driver_message(driver: Driver) -> dict[str, Any]:
     if size > MAX_MESSAGE_BYTES // 2:
         raise UsageError(
             f"the policy's networks take {size / 2**20:.0f} MiB, more than an evaluation worker "
-            f"reads ({MAX_MESSAGE_BYTES // 2**21} MiB): evaluate inline (no --eval-server)"
+            f"reads ({MAX_MESSAGE_BYTES // 2**21} MiB): evaluate inline (--inline-evaluations)"
         )
     return {
         "op": "driver",

@@ -33,8 +33,7 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
         if trainer.eval_servers and config.eval_while_training
         else f"on {len(trainer.eval_servers)} evaluation server(s), training waiting"
         if trainer.eval_servers
-        else "on the training server(s), training waiting (--eval-server runs them in the "
-        "background)"
+        else "on the training server(s), training waiting"
     )
     per = "per scenario " if len(config.scenarios) > 1 else ""
     evaluations = (

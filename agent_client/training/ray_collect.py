@@ -229,7 +229,9 @@ def ray_collector(
     if config.eval_every > 0 and eval_servers == 0:
         raise UsageError(
             "sampling = ray gives every training server to a sampling worker: evaluate on "
-            "servers of their own (--eval-server ADDRESS) or not at all (--set eval_every=0)"
+            "servers of their own (--eval-server ADDRESS; a simulator of their own started "
+            "here did not serve the run's scenarios as the training server does) or not at "
+            "all (--set eval_every=0)"
         )
     env, learner = vec.envs[0], config.learner
     spec = WorkerSpec(

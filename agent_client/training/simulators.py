@@ -13,6 +13,7 @@ the learner imports nothing of it.
 
 from __future__ import annotations
 
+import importlib.util
 import shlex
 import shutil
 import subprocess
@@ -24,6 +25,7 @@ from agent_client.envs.link import open_channel, say_goodbye
 from agent_client.errors import BridgeError
 from protocol.messages import Welcome
 from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
+from protocol.transport.security import ClientCredentials
 
 READY_TIMEOUT_S = 180.0
 """The longest a simulator may take to print its readiness line (SUMO builds a scenario's
@@ -76,37 +78,45 @@ has, and is caught by the comparison)."""
 
 
 def evaluation_simulator(
-    server: str, scenarios: Sequence[str], timeout_s: float
+    server: str, scenarios: Sequence[str], timeout_s: float, idle: bool = True
 ) -> tuple[OwnSimulator | None, str]:
-    """A simulator of its own for a run's evaluations, in the kernel's idle class, where it
-    offers `scenarios` as the training `server` does (backend, its version, the scenarios with
-    their options, the action bounds and the sensor range); else None. Either way, a line that
-    says where the evaluations will run."""
+    """A simulator of its own for a run's evaluations (with `idle`, in the kernel's idle
+    class), where it offers `scenarios` as the training `server` does (the server and backend
+    and their versions, the protocol, the scenarios with their options, the action bounds and
+    the sensor range); else None. Either way, a line that says where the evaluations will run
+    ("" where the training server itself does not offer `scenarios`: the run's own check says
+    so). A training server that does not answer raises, as the run would."""
     inline = "evaluation simulator: none of its own, the evaluations run on the training server"
-    try:
-        training = welcome_of(server, timeout_s)
-    except BridgeError as exc:
-        return None, f"{inline} ({server} did not answer a handshake: {exc})"
+    if importlib.util.find_spec("sim_server") is None:
+        return None, f"{inline} (sim-server is not installed here)"
+    if ClientCredentials.from_environment() is not None:
+        return None, f"{inline} (the run has CURVE keys, which a simulator of its own lacks)"
+    training = welcome_of(server, timeout_s)  # a server that does not answer fails the run
+    if not {info.name for info in training.scenarios} >= set(scenarios):
+        return None, ""
     if training.backend not in EVALUATION_BACKENDS:
         return None, f"{inline} (no simulator of backend {training.backend!r} can start here)"
-    args = f"--backend {training.backend} --idle-priority"
+    args = f"--backend {training.backend}" + (" --idle-priority" if idle else "")
     try:
         simulator = OwnSimulator(args)
     except SimulatorFailed as exc:
         return None, f"{inline} ({exc})"
     try:
-        difference = serving_differently(
-            training, welcome_of(simulator.address, timeout_s), scenarios
-        )
+        own = welcome_of(simulator.address, timeout_s)
+        difference = serving_differently(training, own, scenarios)
     except BridgeError as exc:
         difference = str(exc)
+    except BaseException:
+        simulator.close()
+        raise
     if difference:
         simulator.close()
         return None, f"{inline} (a simulator started here differs from {server}: {difference})"
     return simulator, (
-        f"evaluation simulator: its own (sim-server {args}), the evaluations run there in the "
-        "background (--eval-server ADDRESS chooses one, --inline-evaluations keeps them on the "
-        "training server)"
+        f"evaluation simulator: its own (sim-server {args}), the evaluations run there"
+        + (" in the background" if idle else "")
+        + " (--eval-server ADDRESS chooses one, --inline-evaluations keeps them on the training "
+        "server)"
     )
 
 
@@ -122,6 +132,7 @@ def welcome_of(address: str, timeout_s: float) -> Welcome:
 def serving_differently(training: Welcome, own: Welcome, scenarios: Sequence[str]) -> str:
     """ "" where `own` serves `scenarios` as `training` does, else the first difference."""
     for what, theirs, ours in (
+        ("server", training.server, own.server),
         ("backend", training.backend, own.backend),
         ("backend version", training.backend_version, own.backend_version),
         ("protocol", training.protocol, own.protocol),

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import BridgeError
 from agent_client.training.run_log import read_rows
 from agent_client.training.sampler import SamplingWorker, Settings
 from agent_client.training.simulators import (
@@ -171,7 +172,9 @@ def test_a_run_without_an_evaluation_server_evaluates_on_one_of_its_own(
         command, capture_output=True, text=True, env=env, timeout=300, check=False
     )
     assert result.returncode == 0, result.stderr
-    assert "evaluation simulator: its own" in result.stdout + result.stderr
+    output = result.stdout + result.stderr
+    assert "evaluation simulator: its own" in output
+    assert "in the background on 1 evaluation server(s)" in output  # the run's own plan
     assert len(read_rows(tmp_path / "run" / "evaluations.csv")) >= 1
     assert simulators_under(tmp_path) == []
 
@@ -191,5 +194,6 @@ def test_an_evaluation_simulator_is_started_only_where_it_serves_as_the_training
     assert simulator is None
     assert "run on the training server" in line and "'nosuch' is not offered" in line
     assert simulators_under(tmp_path) == []  # the one that did not fit is gone
-    simulator, line = evaluation_simulator("tcp://127.0.0.1:9", ["cf"], 0.5)
-    assert simulator is None and "did not answer" in line
+    assert evaluation_simulator(fake_server.address, ["nosuch"], 10.0) == (None, "")
+    with pytest.raises(BridgeError):  # no answer: the run fails, as it would without
+        evaluation_simulator("tcp://127.0.0.1:9", ["cf"], 0.5)

@@ -43,6 +43,8 @@ from sim_server.backends.sumo.scenarios import (
 
 MOTORWAY_SPEEDS = (80 / 3.6, 100 / 3.6, 120 / 3.6)
 """The motorway speed limits a seed draws from (m/s): a policy meets 80-120 km/h, not one."""
+MIN_MOTORWAY_SPEED = 5.0
+"""m/s: the slowest motorway option `motorway_speed` sets."""
 RAMP_SPEED = 80 / 3.6
 """Their ramps' speed limit (m/s)."""
 DOWNSTREAM = 500.0
@@ -96,6 +98,7 @@ class MergeOptions(ParsedOptions):
         if 0 < self.acceleration_lane < 20 or 0 < self.ramp_length < 20:
             raise invalid_option("options acceleration_lane and ramp_length must be 0 or >= 20 m")
         _one_of("ego_start", self.ego_start, _EGO_START)
+        _speed_limit(self.motorway_speed)
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,6 +133,7 @@ class ExitOptions(ParsedOptions):
             raise invalid_option("option main_lanes must be 0 (drawn), 2, 3 or 4")
         if 0 < self.deceleration_lane < 20:
             raise invalid_option("option deceleration_lane must be 0 or >= 20 m")
+        _speed_limit(self.motorway_speed)
         deceleration = self.deceleration_lane or max(DECELERATION_LANES)  # the longest drawn
         if self.exit_distance and self.exit_distance < deceleration + 100:
             raise invalid_option(
@@ -147,7 +151,7 @@ class LaneDropOptions(ParsedOptions):
     dropped_lane: str = "random"
     """Which of the three lanes ends: ``left``, ``right`` or ``random`` (drawn)."""
     motorway_speed: float = 0.0
-    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h; the ramps' is 80)."""
+    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h)."""
     ego_lane: int = -1
     """The ego's lane at its start, 0 the rightmost (-1: random)."""
 
@@ -161,6 +165,14 @@ class LaneDropOptions(ParsedOptions):
         if 0 < self.drop_distance < 100:
             raise invalid_option("option drop_distance must be 0 or >= 100 m")
         _one_of("dropped_lane", self.dropped_lane, _DROPPED)
+        _speed_limit(self.motorway_speed)
+
+
+def _speed_limit(value: float) -> None:
+    if 0 < value < MIN_MOTORWAY_SPEED:
+        raise invalid_option(
+            f"option motorway_speed must be 0 (drawn) or >= {MIN_MOTORWAY_SPEED:g} m/s"
+        )
 
 
 def _one_of(name: str, value: str, valid: tuple[str, ...]) -> None:

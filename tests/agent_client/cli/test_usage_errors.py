@@ -25,6 +25,10 @@ NOBODY = "tcp://127.0.0.1:9"  # the discard port: nothing answers there
         (["train", "--set", "features=typo"], ["'typo'", "cf", "lc"]),
         (["train", "--config", "missing.toml"], ["missing.toml"]),
         (["train", "--resume", "no/such/run"], ["no/such/run"]),
+        (
+            ["train", "--inline-evaluations", "--eval-server", "tcp://127.0.0.1:8"],
+            ["--inline-evaluations", "--eval-server"],
+        ),
         (["drive", "--reward", "typo"], ["'typo'", "safe"]),
         (["drive", "--policy", "missing.pt"], ["missing.pt", "idm"]),
         (["drive", "--policy", "idm:missing.json"], ["missing.json"]),

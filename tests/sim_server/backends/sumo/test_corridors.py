@@ -17,6 +17,7 @@ from sim_server.backends.sumo.corridors import (
     CORRIDORS,
     EXIT_DISTANCES,
     MERGE_LANES,
+    MOTORWAY_SPEEDS,
     ExitOptions,
     LaneDropOptions,
     MergeOptions,
@@ -48,6 +49,11 @@ def test_the_geometry_is_drawn_from_the_seed_and_repeats_with_it() -> None:
     exits = {edge_lengths(network("exit", s))["main"] + edge_lengths(network("exit", s))["decel"]
              for s in range(40)}  # fmt: skip
     assert exits == set(EXIT_DISTANCES)
+    for name in CORRIDORS:  # every motorway edge at the seed's limit, the ramps at 80 km/h
+        limits = [{speed for e, _, _, _, speed, _ in network(name, s).edges if "ramp" not in e}
+                  for s in range(40)]  # fmt: skip
+        assert all(len(one) == 1 for one in limits), name
+        assert set().union(*limits) == set(MOTORWAY_SPEEDS), name
 
 
 def test_an_option_fixes_what_it_sets_whatever_the_seed() -> None:
@@ -63,6 +69,9 @@ def test_an_option_fixes_what_it_sets_whatever_the_seed() -> None:
             ("up", "down", 1, 1),
         ]  # lane 2, the left one, leads nowhere
     assert network("merge", 0, ego_start="main").routes[EGO_ROUTE].startswith("main_up ")
+    for name in CORRIDORS:
+        net = network(name, 3, motorway_speed=25.0)
+        assert {speed for e, _, _, _, speed, _ in net.edges if "ramp" not in e} == {25.0}
 
 
 @pytest.mark.parametrize(
@@ -76,6 +85,7 @@ def test_an_option_fixes_what_it_sets_whatever_the_seed() -> None:
         (ExitOptions, {"ego_lane": 4}, "ego_lane must be <= 3"),
         (LaneDropOptions, {"dropped_lane": "middle"}, "dropped_lane must be one of"),
         (LaneDropOptions, {"drop_distance": 50.0}, ">= 100 m"),
+        (ExitOptions, {"motorway_speed": 2.0}, "motorway_speed must be 0 .drawn. or >= 5"),
     ],
 )
 def test_a_bad_geometry_is_refused_naming_the_option(
