@@ -43,6 +43,8 @@ JERK_LIMIT = 5.0
 """m/s³: how fast the acceleration changes from one decision to the next, unless braking at
 `MobilParams.stop_deceleration` or harder: under the 5.6 m/s³ a passenger notices
 (docs/evaluation.md)."""
+STANDSTILL_SPEED = 5.0
+"""m/s: below this a residual policy's correction fades out towards a standstill (`at_stake`)."""
 URGENT_TIME = 6.0
 """s: see `MobilParams.urgent_distance`."""
 DECISION_INTERVAL = 0.1
@@ -155,18 +157,21 @@ class IDMMobilDriver:
             acceleration = min(acceleration, self._fit_in(obs, must))
         return acceleration
 
-    def route_at_stake(self, obs: Observation) -> float:
-        """How close the ego is to failing its route, from 0 (no change needed, or more than
-        twice the urgent distance per lane to cross away) to 1 (within the urgent distance per
-        lane: the change must be made now). A residual policy's correction fades out over it
-        (`agent_client.drivers.policy.ActionScale`): where the route is at stake, this
-        driver, which reaches the end of its route, drives."""
+    def at_stake(self, obs: Observation) -> float:
+        """How much of the drive is at stake, from 0 to 1: a residual policy's correction
+        fades out over it (`agent_client.drivers.policy.ActionScale`), so that there this
+        driver, which reaches the end of its route and moves off when it can, drives. The
+        route: 0 where no change is needed or the lane end is more than twice the urgent
+        distance per lane to cross away, 1 within that distance (the change must be made
+        now). A standstill: 0 from `STANDSTILL_SPEED` up, 1 at rest (a correction learned at
+        speed holds an ego still where it has rarely stood)."""
         road = road_ahead(obs)
         lanes = abs(road.lanes_to_change)
+        standing = 1.0 - obs.ego.speed / STANDSTILL_SPEED
         if not lanes:
-            return 0.0
+            return min(max(standing, 0.0), 1.0)
         urgent = lanes * max(self.mobil.urgent_distance, obs.ego.speed * URGENT_TIME)
-        return min(max(2.0 - road.lane_end / urgent, 0.0), 1.0)
+        return min(max(2.0 - road.lane_end / urgent, standing, 0.0), 1.0)
 
     def _strategic(self, obs: Observation, road: Road) -> bool:
         """The route needs a change within the look-ahead."""

@@ -23,7 +23,7 @@ from protocol.messages import ActionSchema, Observation
 
 RESIDUAL_RANGE = 2.0
 """m/s²: how far a residual policy's acceleration may stray from what its reference wants (±),
-where the route is not at stake (`Reference.route_at_stake`)."""
+where the drive is not at stake (`Reference.at_stake`)."""
 
 STOP_DECELERATION = MobilParams().stop_deceleration
 """m/s²: harder braking than this is applied at once, as the reference applies it."""
@@ -38,15 +38,15 @@ class Reference:
     """The acceleration it wants (m/s²), before its jerk limit."""
     lane_change: Callable[[Observation, bool], int]
     """Its lane change (`LaneChoice.reference`): a residual policy changes lanes as it does."""
-    route_at_stake: Callable[[Observation], float]
-    """From 0 to 1: how far the policy's correction fades out, so that where its route is at
-    stake the reference, which reaches the end of its route, drives."""
+    at_stake: Callable[[Observation], float]
+    """From 0 to 1: how far the policy's correction fades out, so that where the drive is at
+    stake (a lane end the route must leave, a standstill) the reference drives."""
 
 
 _IDM_MOBIL = IDMMobilDriver()
 REFERENCES: dict[str, Reference] = {
     "idm+mobil": Reference(
-        _IDM_MOBIL.wanted_acceleration, _IDM_MOBIL.lane_change, _IDM_MOBIL.route_at_stake
+        _IDM_MOBIL.wanted_acceleration, _IDM_MOBIL.lane_change, _IDM_MOBIL.at_stake
     ),
 }
 """The drivers a policy can be trained on top of."""
@@ -65,10 +65,11 @@ class ActionScale:
     (residual policy learning, Silver et al. 2018, Johannink et al. 2019: the policy starts as
     good as the reference, IDM + MOBIL on roads where lanes end, and learns what to do better),
     changed from one decision to the next no faster than the reference's own jerk limit unless
-    braking hard. The correction fades out where the reference says the route is at stake
-    (`Reference.route_at_stake`; a shield, Alshiekh et al. 2018): close to the end of a lane the
-    route must leave, the reference alone drives, so that what the policy learned elsewhere
-    cannot make it miss a merge or an exit on a road it never saw."""
+    braking hard. The correction fades out where the reference says the drive is at stake
+    (`Reference.at_stake`; a shield, Alshiekh et al. 2018): close to the end of a lane the
+    route must leave, and at a standstill, the reference alone drives, so that what the policy
+    learned elsewhere cannot make it miss a merge or an exit, or stand, on a road it never
+    saw."""
 
     low: float
     high: float
@@ -114,7 +115,7 @@ class ActionScale:
 
     def _reach(self, obs: Observation) -> float:
         """m/s²: how far a residual policy's correction reaches in `obs` (at u = ±1)."""
-        return RESIDUAL_RANGE * (1.0 - REFERENCES[self.residual].route_at_stake(obs))
+        return RESIDUAL_RANGE * (1.0 - REFERENCES[self.residual].at_stake(obs))
 
 
 class PolicyDriver:

@@ -17,7 +17,7 @@ from typing import ClassVar
 import numpy as np
 
 from protocol.messages import OptionValue, ScenarioInfo
-from sim_server.backends.highway.networks import LANE_DROP_LANES, MOTORWAY_SPEED, Geometry
+from sim_server.backends.highway.networks import LANE_DROP_LANES, Geometry
 from sim_server.backends.highway.placement import exit_scene, lane_drop_scene, merge_scene
 from sim_server.backends.highway.scene import DT, HONOURED, Scene, SceneOptions
 from sim_server.backends.options import COMMON_OPTIONS, Bounds, ParsedOptions, invalid_option
@@ -29,6 +29,7 @@ from sim_server.backends.sumo.corridors import (
     EXIT_DISTANCES,
     EXIT_LANES,
     MERGE_LANES,
+    MOTORWAY_SPEED,
     RAMP_LENGTHS,
 )
 

@@ -17,10 +17,7 @@ from highway_env.road.lane import CircularLane, LineType, SineLane, StraightLane
 from highway_env.road.road import RoadNetwork
 
 from sim_server.backends.highway.road import Layout
-from sim_server.backends.sumo.corridors import DOWNSTREAM, MOTORWAY_SPEEDS, RAMP_SPEED
-
-MOTORWAY_SPEED = MOTORWAY_SPEEDS[1]
-"""The motorway's speed limit (m/s): 100 km/h, the middle of those the SUMO corridors draw."""
+from sim_server.backends.sumo.corridors import DOWNSTREAM, MOTORWAY_SPEED, RAMP_SPEED
 
 LANE_WIDTH = StraightLane.DEFAULT_WIDTH
 """highway-env's lane width (m)."""

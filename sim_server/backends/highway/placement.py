@@ -21,7 +21,6 @@ from highway_env.vehicle.objects import Obstacle
 from protocol.errors import ErrorCode
 from sim_server.backends.highway.networks import (
     LANE_DROP_LANES,
-    MOTORWAY_SPEED,
     Geometry,
     exit_layout,
     lane_drop_layout,
@@ -29,7 +28,7 @@ from sim_server.backends.highway.networks import (
 )
 from sim_server.backends.highway.road import LaneIndex, Layout, RoadId
 from sim_server.backends.highway.scene import Scene, SceneOptions
-from sim_server.backends.sumo.corridors import RAMP_SPEED
+from sim_server.backends.sumo.corridors import MOTORWAY_SPEED, RAMP_SPEED
 from sim_server.errors import BackendError
 
 START_ROOM = 100.0

@@ -42,7 +42,9 @@ from sim_server.backends.sumo.scenarios import (
 )
 
 MOTORWAY_SPEEDS = (80 / 3.6, 100 / 3.6, 120 / 3.6)
-"""The motorway speed limits a seed draws from (m/s): a policy meets 80-120 km/h, not one."""
+"""The motorway speed limits a seed draws from with ``motorway_speed`` 0 (m/s)."""
+MOTORWAY_SPEED = MOTORWAY_SPEEDS[1]
+"""The motorway's speed limit unless an option says otherwise (m/s): 100 km/h."""
 MIN_MOTORWAY_SPEED = 5.0
 """m/s: the slowest motorway option `motorway_speed` sets."""
 RAMP_SPEED = 80 / 3.6
@@ -78,8 +80,9 @@ class MergeOptions(ParsedOptions):
     """Length of the ramp before it (m; 0: drawn from 150-350 m)."""
     ramp_flow: float = 300.0
     """Vehicles per hour entering from the ramp (the motorway's is ``flow`` per lane)."""
-    motorway_speed: float = 0.0
-    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h; the ramps' is 80)."""
+    motorway_speed: float = MOTORWAY_SPEED
+    """The motorway's speed limit (m/s; 100 km/h; 0: drawn, 80, 100 or 120 km/h; the ramps'
+    is 80)."""
     ego_start: str = "ramp"
     """Where the ego enters: ``ramp`` (it must merge) or ``main`` (the merging traffic comes in
     beside it)."""
@@ -111,8 +114,9 @@ class ExitOptions(ParsedOptions):
     """Metres from the ego's start to where the off-ramp leaves (0: drawn from 600-1200 m)."""
     deceleration_lane: float = 0.0
     """Length of the deceleration lane before it (m; 0: drawn, 100 or 200 m)."""
-    motorway_speed: float = 0.0
-    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h; the ramps' is 80)."""
+    motorway_speed: float = MOTORWAY_SPEED
+    """The motorway's speed limit (m/s; 100 km/h; 0: drawn, 80, 100 or 120 km/h; the ramps'
+    is 80)."""
     exit_share: float = 0.2
     """Share of the human traffic that takes the exit."""
     ego_lane: int = -1
@@ -150,8 +154,8 @@ class LaneDropOptions(ParsedOptions):
     """Metres from the ego's start to where the lane ends (0: drawn from 400-1000 m)."""
     dropped_lane: str = "random"
     """Which of the three lanes ends: ``left``, ``right`` or ``random`` (drawn)."""
-    motorway_speed: float = 0.0
-    """The motorway's speed limit (m/s; 0: drawn, 80, 100 or 120 km/h)."""
+    motorway_speed: float = MOTORWAY_SPEED
+    """The motorway's speed limit (m/s; 100 km/h; 0: drawn, 80, 100 or 120 km/h)."""
     ego_lane: int = -1
     """The ego's lane at its start, 0 the rightmost (-1: random)."""
 

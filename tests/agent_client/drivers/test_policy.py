@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent_client.drivers.mobil import JERK_LIMIT, IDMMobilDriver
+from agent_client.drivers.mobil import JERK_LIMIT, STANDSTILL_SPEED, IDMMobilDriver
 from agent_client.drivers.policy import (
     RESIDUAL_RANGE,
     ActionScale,
@@ -96,6 +96,22 @@ def test_a_residual_correction_fades_out_where_the_route_is_at_stake() -> None:
     assert scale.to_policy(reference, near) == scale.to_policy(2.0, near) == 0.0
     three_lanes = replace(near, road=Road(400.0, -3, ROAD_RANGE, 0.0))  # 150 m per lane
     assert scale.to_env(1.0, three_lanes) == scale.to_env(-1.0, three_lanes)
+
+
+def test_a_residual_correction_fades_out_towards_a_standstill() -> None:
+    """Moving off is the reference's: at rest a policy cannot hold the ego still (an ego that
+    crawled at 0.5 m/s after a merge ended its episode as `stopped`)."""
+    scale = ActionScale(-9.0, 9.0, residual="idm+mobil", interval=1.0)  # bounds out of reach
+
+    def reach(speed: float) -> float:
+        obs = make_observation(ego=Ego(speed, 0.0, 0, 1, 120.0, 25.0), neighbours=free_road())
+        return scale.to_env(1.0, obs) - scale.to_env(-1.0, obs)
+
+    assert reach(0.0) == 0.0
+    assert reach(STANDSTILL_SPEED / 2) == pytest.approx(RESIDUAL_RANGE)
+    assert reach(STANDSTILL_SPEED) == reach(20.0) == pytest.approx(2 * RESIDUAL_RANGE)
+    standing = make_observation(ego=Ego(0.0, 0.0, 0, 1, 120.0, 25.0), neighbours=free_road())
+    assert scale.to_env(-1.0, standing) == IDMMobilDriver().acceleration(standing, 1.0) > 1.0
 
 
 def test_a_residual_action_brakes_hard_at_once_and_within_the_bounds() -> None:

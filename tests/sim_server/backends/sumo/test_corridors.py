@@ -17,6 +17,7 @@ from sim_server.backends.sumo.corridors import (
     CORRIDORS,
     EXIT_DISTANCES,
     MERGE_LANES,
+    MOTORWAY_SPEED,
     MOTORWAY_SPEEDS,
     ExitOptions,
     LaneDropOptions,
@@ -49,11 +50,16 @@ def test_the_geometry_is_drawn_from_the_seed_and_repeats_with_it() -> None:
     exits = {edge_lengths(network("exit", s))["main"] + edge_lengths(network("exit", s))["decel"]
              for s in range(40)}  # fmt: skip
     assert exits == set(EXIT_DISTANCES)
-    for name in CORRIDORS:  # every motorway edge at the seed's limit, the ramps at 80 km/h
-        limits = [{speed for e, _, _, _, speed, _ in network(name, s).edges if "ramp" not in e}
-                  for s in range(40)]  # fmt: skip
+    for name in CORRIDORS:  # 100 km/h, or (0) every motorway edge at the seed's drawn limit
+        assert motorway_limits(network(name, 5)) == {MOTORWAY_SPEED}, name
+        limits = [motorway_limits(network(name, s, motorway_speed=0.0)) for s in range(40)]
         assert all(len(one) == 1 for one in limits), name
         assert set().union(*limits) == set(MOTORWAY_SPEEDS), name
+
+
+def motorway_limits(net) -> set[float]:  # type: ignore[no-untyped-def]
+    """The speed limits of the network's edges but the ramps (80 km/h)."""
+    return {speed for edge, _, _, _, speed, _ in net.edges if "ramp" not in edge}
 
 
 def test_an_option_fixes_what_it_sets_whatever_the_seed() -> None:
@@ -70,8 +76,7 @@ def test_an_option_fixes_what_it_sets_whatever_the_seed() -> None:
         ]  # lane 2, the left one, leads nowhere
     assert network("merge", 0, ego_start="main").routes[EGO_ROUTE].startswith("main_up ")
     for name in CORRIDORS:
-        net = network(name, 3, motorway_speed=25.0)
-        assert {speed for e, _, _, _, speed, _ in net.edges if "ramp" not in e} == {25.0}
+        assert motorway_limits(network(name, 3, motorway_speed=25.0)) == {25.0}
 
 
 @pytest.mark.parametrize(
