@@ -18,6 +18,7 @@ import pytest
 
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError
+from agent_client.training import simulators
 from agent_client.training.run_log import read_rows
 from agent_client.training.sampler import SamplingWorker, Settings
 from agent_client.training.simulators import (
@@ -190,10 +191,14 @@ def test_an_evaluation_simulator_is_started_only_where_it_serves_as_the_training
         assert welcome_of(simulator.address, 10.0).backend == "fake"
     finally:
         simulator.close()
-    simulator, line = evaluation_simulator(fake_server.address, ["cf", "nosuch"], 10.0)
+    # one that serves differently (what differs: tests/agent_client/training/test_simulators.py)
+    monkeypatch.setattr(simulators, "serving_differently", lambda *_: "sensor range 1 here")
+    simulator, line = evaluation_simulator(fake_server.address, ["cf"], 10.0)
     assert simulator is None
-    assert "run on the training server" in line and "'nosuch' is not offered" in line
+    assert "run on the training server" in line and "sensor range 1 here" in line
     assert simulators_under(tmp_path) == []  # the one that did not fit is gone
+    # a scenario the training server lacks: nothing started, the run's own check names it
     assert evaluation_simulator(fake_server.address, ["nosuch"], 10.0) == (None, "")
+    assert simulators_under(tmp_path) == []
     with pytest.raises(BridgeError):  # no answer: the run fails, as it would without
         evaluation_simulator("tcp://127.0.0.1:9", ["cf"], 0.5)
