@@ -54,6 +54,43 @@ def targets_met(policy: Mapping[str, float], idm: Mapping[str, float]) -> dict[s
     }
 
 
+EVALUATION_TARGETS = ("comfortable", "safe_headway", "as_fast_as_idm")
+"""The targets an evaluation over several scenarios meets as a whole: shares of its time and its
+average speed, over all its episodes against the reference's on the same seeds. Per scenario,
+ten episodes make these figures noisier than the margin a good policy keeps: a policy faster
+than IDM + MOBIL on every scenario over 50 held-out seeds missed ``as_fast_as_idm`` on one
+scenario or another in 7 of 12 evaluations (docs/learner.md). What single episodes decide (a
+collision, an arrival) and each scenario's own ceiling stay per scenario."""
+
+
+def judge(
+    scenarios: Mapping[str, tuple[Mapping[str, float], Mapping[str, float]]],
+    whole: tuple[Mapping[str, float], Mapping[str, float]],
+) -> tuple[dict[str, bool], str]:
+    """Which targets an evaluation meets, and what missed which (``merge: arrives; all:
+    as_fast_as_idm``): `scenarios` maps each scenario to its (policy, reference) figures,
+    `whole` holds them over all the evaluation's episodes (`EVALUATION_TARGETS` are judged
+    there where there are several scenarios)."""
+    met: dict[str, bool] = {}
+    missed: list[str] = []
+
+    def book(name: str, verdict: Mapping[str, bool]) -> None:
+        for target, passed in verdict.items():
+            met[target] = met.get(target, True) and passed
+        failed = [target for target, passed in verdict.items() if not passed]
+        if failed:
+            missed.append(f"{name}: {', '.join(failed)}")
+
+    pooled = EVALUATION_TARGETS if len(scenarios) > 1 else ()
+    for name, (policy, reference) in scenarios.items():
+        verdict = targets_met(policy, reference)
+        book(name, {t: ok for t, ok in verdict.items() if t not in pooled})
+    overall = targets_met(*whole)
+    if pooled:
+        book("all", {t: ok for t, ok in overall.items() if t in pooled})
+    return {t: met[t] for t in overall if t in met}, "; ".join(missed)
+
+
 def ceiling_target(reference: Mapping[str, float]) -> float:
     """The share of the ceiling ``near_ceiling`` asks: `CEILING_TARGET`, or what the reference
     reached where that is less."""

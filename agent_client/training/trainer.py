@@ -53,7 +53,7 @@ from agent_client.errors import (
     UsageError,
 )
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_summary
-from agent_client.evaluation.targets import FailureScreen, ceiling_target, targets_met
+from agent_client.evaluation.targets import FailureScreen, ceiling_target, judge
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LANE_COMMANDS
@@ -613,18 +613,15 @@ class Trainer:
         return groups
 
     def _targets(self, summaries: Sequence[EpisodeSummary]) -> tuple[dict[str, bool], str]:
-        """Which targets every scenario's episodes meet against its reference figures, and the
-        scenarios that failed one (``merge: arrives; exit: as_fast_as_idm``)."""
-        met: dict[str, bool] = {}
-        failed = []
-        for name, group in self._by_scenario(summaries).items():
-            verdict = targets_met(aggregate(group), self.reference_figures[name])
-            for target, passed in verdict.items():
-                met[target] = met.get(target, True) and passed
-            missed = [target for target, passed in verdict.items() if not passed]
-            if missed:
-                failed.append(f"{name}: {', '.join(missed)}")
-        return met, "; ".join(failed)
+        """Which targets the evaluation meets against the reference's figures on the same seeds
+        (`agent_client.evaluation.targets.judge`), and what missed which."""
+        assert self.idm_eval is not None
+        scenarios = {
+            name: (aggregate(group), self.reference_figures[name])
+            for name, group in self._by_scenario(summaries).items()
+        }
+        reference = {**self.idm_eval, "average_speed": self._idm_speed_on(summaries)}
+        return judge(scenarios, (aggregate(summaries), reference))
 
     def _policy_state(self) -> dict[str, Any]:
         return self.agent.policy_state_dict(self.config.deploy_averaged)
@@ -827,7 +824,7 @@ class Trainer:
         self.say(evaluation_line(evaluation))
         self._check_convergence()
 
-    def _idm_speed_on(self, summaries: list[EpisodeSummary]) -> float:
+    def _idm_speed_on(self, summaries: Sequence[EpisodeSummary]) -> float:
         """IDM's average speed on the seeds these episodes drove (all of them unless an
         evaluation stopped early, or IDM's per-seed figures are unknown)."""
         assert self.idm_eval is not None

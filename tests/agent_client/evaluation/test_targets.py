@@ -14,6 +14,7 @@ from agent_client.evaluation.targets import (
     HEADWAY_TARGET,
     JERK_TARGET,
     FailureScreen,
+    judge,
     targets_met,
 )
 
@@ -175,3 +176,23 @@ def test_the_screen_never_stops_an_evaluation_that_would_pass() -> None:
         for done in range(1, seeds):
             verdict = screen.failed(episodes[:done], remaining(done, seeds))
             assert verdict is None or not met[verdict], (verdict, met)
+
+
+def test_over_several_scenarios_shares_and_speed_are_judged_on_the_whole_evaluation() -> None:
+    """A scenario a hair slower than its reference passes where the evaluation as a whole is
+    as fast; a collision or a missed arrival on one scenario fails the evaluation."""
+    routed = {**IDM, "route_lanes": 1}
+    slower = figures(average_speed=13.9, arrival_share=1.0)
+    faster = figures(average_speed=14.3, arrival_share=1.0)
+    whole = (figures(average_speed=14.1, arrival_share=1.0), routed)
+    met, missed = judge({"merge": (slower, routed), "exit": (faster, routed)}, whole)
+    assert all(met.values()) and missed == ""
+    slow_whole = (figures(average_speed=13.95, arrival_share=1.0), routed)
+    met, missed = judge({"merge": (slower, routed), "exit": (faster, routed)}, slow_whole)
+    assert [t for t, ok in met.items() if not ok] == ["as_fast_as_idm"]
+    assert missed == "all: as_fast_as_idm"
+    stuck = figures(average_speed=14.3, arrival_share=0.9)
+    met, missed = judge({"merge": (stuck, routed), "exit": (faster, routed)}, whole)
+    assert [t for t, ok in met.items() if not ok] == ["arrives"] and missed == "merge: arrives"
+    alone = judge({"merge": (slower, routed)}, (slower, routed))  # one scenario: as before
+    assert alone == (targets_met(slower, routed), "merge: as_fast_as_idm")
