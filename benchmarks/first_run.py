@@ -8,6 +8,9 @@ its exit, and the env steps per second while learning (the median over the episo
 learning began) and over the whole command (start-up and evaluations included).
 
     python benchmarks/first_run.py --scenario cf cflc --seeds 0 7
+    python benchmarks/first_run.py --scenario cflc --seeds 7 --set reward_params.headway_sigma=0.2
+
+`--set` hands a setting on to every command (a variant of the defaults, to compare with them).
 
 Seeds other than the ones the recommended settings were tuned on (0-2) are the honest test.
 This is a measurement, not a test: minutes per run.
@@ -43,6 +46,9 @@ def main() -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 7])
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "first-run")
     parser.add_argument("--results", type=Path, help="JSON file (default: OUT/first_run.json)")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="for every command"
+    )
     args = parser.parse_args()
     server = subprocess.Popen(
         [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
@@ -57,7 +63,8 @@ def main() -> int:
         address = wait_for_line(server, LISTENING, 120.0)
         for scenario in args.scenario:
             for seed in args.seeds:
-                run = first_run(address, scenario, seed, args.out / f"{scenario}-{seed}")
+                out = args.out / f"{scenario}-{seed}"
+                run = first_run(address, scenario, seed, out, args.set)
                 runs.append(run)
                 print(line(run), flush=True)
                 results.write_text(json.dumps({"machine": machine, "runs": runs}, indent=2))
@@ -69,11 +76,15 @@ def main() -> int:
     return 0
 
 
-def first_run(address: str, scenario: str, seed: int, out: Path) -> dict[str, Any]:
-    """Run the plain command once and read what it did from its output and run folder."""
+def first_run(
+    address: str, scenario: str, seed: int, out: Path, settings: list[str]
+) -> dict[str, Any]:
+    """Run the plain command once (with `settings` as ``--set``) and read what it did from its
+    output and run folder."""
     command = [
         sys.executable, "-m", "agent_client", "train", "--server", address,
         "--scenario", scenario, "--seed", str(seed), "--stop-when-converged", "--out", str(out),
+        *[arg for setting in settings for arg in ("--set", setting)],
     ]  # fmt: skip
     print(f"== {' '.join(command[2:])}", flush=True)
     started = time.perf_counter()
@@ -96,6 +107,7 @@ def first_run(address: str, scenario: str, seed: int, out: Path) -> dict[str, An
     return {
         "scenario": scenario,
         "seed": seed,
+        "settings": settings,
         "converged_episode": int(converged.group(1)) if converged else None,
         "episodes": len(rows),
         "env_steps": last_step,

@@ -309,11 +309,14 @@ RECOMMENDED: dict[str, dict[str, Any]] = {
         },
         LEARNER: {"deploy_tau": 0.001},
     },
+    "cflc": {"reward_params": {"headway_sigma": 0.2}},
 }
 """Settings measured best for one scenario, on top of the defaults (`recommended`; docs/results.md,
-"Measured: learning car following on cf"): on cf, the safe reward's knee 0.1 s closer and a far
-leader costing part of the drive term (closing up pays), a slower average of the deployed actor,
-and after a failed evaluation a wait of its steps only. configs/cf.toml spells them out."""
+"Measured: learning car following on cf" and "... car following and lane changing on cflc"): on
+cf, the safe reward's knee 0.1 s closer and a far leader costing part of the drive term (closing
+up pays), a slower average of the deployed actor, and after a failed evaluation a wait of its
+steps only; on cflc, a steeper headway term below the knee (following under the evaluation's
+1 s costs twice as much). configs/cf.toml and configs/cflc.toml spell them out."""
 
 
 def recommended(scenario: str | list[str] = DEFAULT_SCENARIO, reward: str = "safe") -> TrainConfig:

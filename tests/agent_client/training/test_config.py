@@ -78,7 +78,8 @@ def test_reward_params_reach_the_reward_and_merge_like_the_learner_table(tmp_pat
          "--set", "reward_params.jerk_weight=0.25"]
     )  # fmt: skip
     config = build_config(args)
-    assert config.reward_params == {"desired_headway": 1.1, "jerk_weight": 0.25}
+    merged = {"headway_sigma": 0.2, "desired_headway": 1.1, "jerk_weight": 0.25}  # cflc's own too
+    assert config.reward_params == merged
     reward = config.reward_fn()
     assert (reward.desired_headway, reward.jerk_weight) == (1.1, 0.25)  # type: ignore[attr-defined]
     assert TrainConfig.from_dict(config.to_dict()) == config  # config.json keeps them
@@ -150,12 +151,16 @@ def test_the_recommended_reward_parameters_go_only_with_their_reward() -> None:
     assert config.reward_params == {} and config.eval_budget == 1.0
 
 
-def test_other_scenarios_train_with_the_defaults() -> None:
-    assert recommended("cflc") == TrainConfig(scenario="cflc")
+def test_cflc_trains_with_a_steeper_headway_term_and_other_scenarios_with_the_defaults() -> None:
+    steeper = TrainConfig(scenario="cflc", reward_params={"headway_sigma": 0.2})
+    assert recommended("cflc") == steeper
+    assert build_config(build_parser().parse_args(["train", "--scenario", "cflc"])) == steeper
+    assert recommended("cflc", reward="ra3") == TrainConfig(scenario="cflc", reward="ra3")
     several = TrainConfig(scenario=["merge", "cf"], episodes=2 * TrainConfig().episodes)
     assert recommended(["merge", "cf"]) == several  # as many episodes of each as one alone
-    parsed = build_parser().parse_args(["train", "--scenario", "cflc"])
-    assert build_config(parsed) == TrainConfig(scenario="cflc")
+    several_lc = TrainConfig(scenario=["merge", "cflc"], episodes=2 * TrainConfig().episodes)
+    assert recommended(["merge", "cflc"]) == several_lc
+    assert recommended("merge") == TrainConfig(scenario="merge")
 
 
 def test_the_shipped_configuration_files_spell_the_recommended_settings_out() -> None:
