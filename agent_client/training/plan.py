@@ -42,6 +42,12 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
         if config.eval_every
         else "none (eval_every = 0)"
     )
+    judged = (
+        " (collisions, route ends and the ceiling per scenario; jerk, headways and speed over "
+        "the whole evaluation)"
+        if len(config.scenarios) > 1
+        else ""
+    )
     where_trained = (
         f"{config.simulators} simulators the Ray sampling workers start beside them"
         if config.simulators
@@ -54,7 +60,8 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
         f"  targets: no collision, <= {100 * JERK_TARGET:g} % of jerk above "
         f"{JERK_COMFORT_LIMIT:g} m/s^3, <= {100 * HEADWAY_TARGET:g} % of headways under 1 s, "
         f"as fast as the reference ({reference}), >= {100 * CEILING_TARGET:g} % of the "
-        "leader-at-entry ceiling; where lanes end, every episode reaching the end of its route",
+        "leader-at-entry ceiling; where lanes end, every episode reaching the end of its route"
+        + judged,
         f"  stops at: {stops}; at most {' or '.join(limits)}; Ctrl-C checkpoints",
         f"  run folder: {out} (policy.pt, episodes.csv, evaluations.csv, tensorboard/)",
     ]

@@ -1,0 +1,39 @@
+"""The first lines of a training run: what it trains, how it is judged, where it stops."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+from agent_client.training.config import TrainConfig
+from agent_client.training.plan import plan_lines
+
+
+def trainer_for(config: TrainConfig) -> Any:
+    """What `plan_lines` reads of a trainer, without a server."""
+    return SimpleNamespace(
+        config=config,
+        agent=SimpleNamespace(n_lane_actions=3),
+        vec=SimpleNamespace(envs=[object(), object()]),
+        reference=SimpleNamespace(name="idm+mobil"),
+        eval_servers=["ipc:///tmp/eval"],
+        features=SimpleNamespace(name="road"),
+    )
+
+
+def test_the_plan_names_the_run_its_targets_and_where_it_stops() -> None:
+    config = TrainConfig(scenario="cflc", stop_when_converged=True)
+    text = "\n".join(plan_lines(trainer_for(config), Path("runs/x")))
+    assert "training TD3 on cflc" in text and "lane changes learned" in text
+    assert "as fast as the reference (idm+mobil)" in text
+    assert "3 evaluations in a row" in text and "at most 300 episodes" in text
+    assert "runs/x" in text and "over the whole evaluation" not in text
+
+
+def test_over_several_scenarios_the_plan_says_what_is_judged_where() -> None:
+    config = TrainConfig(scenario=["merge", "exit", "cflc"], stop_when_converged=True)
+    text = "\n".join(plan_lines(trainer_for(config), Path("runs/x")))
+    assert "merge, exit, cflc" in text and "per scenario on held-out seeds" in text
+    assert "collisions, route ends and the ceiling per scenario" in text
+    assert "jerk, headways and speed over the whole evaluation" in text
