@@ -55,8 +55,8 @@ class TrainConfig:
     scenario: str | list[str] = DEFAULT_SCENARIO
     """Scenario offered by the server (cf, cflc, merge, exit, lanedrop, or a user's own), or a
     list of them: one policy over all, each episode driving the one its seed picks, converged
-    when no scenario has a collision or a missed route end and the whole evaluation meets the
-    other targets (`agent_client.evaluation.targets.judge`)."""
+    when every scenario meets its collision, route-end and ceiling targets and the whole
+    evaluation its jerk, headway and speed targets (`agent_client.evaluation.targets.judge`)."""
     reward: str = "safe"
     """Reward function: safe (ours, recommended), ra1, ra2, ra3, ra4 or rlc."""
     reward_params: dict[str, float] = field(default_factory=dict)
