@@ -9,7 +9,9 @@ On one ``sim-server --pool N`` (SUMO, `cf` by default) and, for the hop's cost, 
   the simulators deliver to clients that need no time of their own);
 * **lock-step**: one `RemoteVectorEnv` over the pool's address N times;
 * **training**: ``agent-client train``'s learner over the pool's address N times, evaluations
-  off (issue 35's target: >= 0.6x the independent drivers).
+  off, with each ``--sampling`` kind asked for: ``local`` (lock-step in the learner's process)
+  and ``processes`` (a sampling process per session while the learner updates) by default
+  (issue 35's target: >= 0.6x the independent drivers).
 
     python benchmarks/pool.py --pool 2 --seconds 30
 """
@@ -83,6 +85,9 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=30.0, help="per measurement")
     parser.add_argument("--scenario", default="cf")
     parser.add_argument("--backend", default="sumo")
+    parser.add_argument(
+        "--sampling", nargs="+", default=["local", "processes"], help="training's sampling kinds"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/pool.json")
     args = parser.parse_args()
 
@@ -99,9 +104,10 @@ def main() -> int:
         row["independent_idm"] = independent(pool_address, args.scenario, args.seconds, args.pool)
         lock_step = stepping([pool_address] * args.pool, args.scenario, args.seconds)
         row["lock_step"] = lock_step["env_steps_per_s"]
-        trained = training([pool_address] * args.pool, args.scenario, args.seconds)
-        row["training"] = trained["train_env_steps_per_s"]
-        row["training_updates_per_s"] = trained["updates_per_s"]
+        for sampling in args.sampling:
+            trained = training([pool_address] * args.pool, args.scenario, args.seconds, sampling)
+            row[f"training_{sampling}"] = trained["train_env_steps_per_s"]
+            row[f"training_{sampling}_updates_per_s"] = trained["updates_per_s"]
     finally:
         stop_process(plain)
         stop_process(pool)
@@ -113,9 +119,11 @@ def main() -> int:
     print(f"| one IDM driver, plain server | {row['one_client_plain']:.0f} | |")
     print(f"| one IDM driver, through the pool | {row['one_client_pool']:.0f} | "
           f"{row['one_client_pool'] / row['one_client_plain']:.2f} of plain |")  # fmt: skip
-    for name, label in (("independent_idm", f"{args.pool} independent IDM drivers"),
-                        ("lock_step", f"lock-step vector env of {args.pool}"),
-                        ("training", f"training over {args.pool} sessions")):  # fmt: skip
+    rows = [("independent_idm", f"{args.pool} independent IDM drivers"),
+            ("lock_step", f"lock-step vector env of {args.pool}")]  # fmt: skip
+    rows += [(f"training_{kind}", f"training over {args.pool} sessions, sampling {kind}")
+             for kind in args.sampling]  # fmt: skip
+    for name, label in rows:
         print(f"| {label} | {row[name]:.0f} | {row[name] / independent_rate:.2f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {"cores": os.cpu_count(), "pool": args.pool, "scenario": args.scenario,

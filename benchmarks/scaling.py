@@ -78,11 +78,14 @@ class StopAfter(QuietReporter):
             self.trainer.request_stop()
 
 
-def training(addresses: list[str], scenario: str, seconds: float) -> dict[str, float]:
+def training(
+    addresses: list[str], scenario: str, seconds: float, sampling: str = "local"
+) -> dict[str, float]:
     config = apply_overrides(
         TrainConfig(),
         {
             "scenario": scenario,
+            "sampling": sampling,
             "episodes": 100_000,
             "eval_every": 0,
             "checkpoint_every": 1000,

@@ -97,9 +97,12 @@ def add_parser(commands: Commands) -> None:
     )
     train.add_argument(
         "--sampling",
-        choices=("local", "ray"),
-        help="local (default): this process steps every --server at once; ray: one "
-        "asynchronous Ray worker per --server, each with a copy of the policy (docs/ray.md)",
+        choices=("auto", "local", "processes", "ray"),
+        help="local: this process steps every --server at once; processes: one sampling "
+        "process per --server, each with a copy of the policy, while the learner updates; "
+        "ray: the same workers as Ray actors (docs/ray.md); auto (default): processes where "
+        "each server's worker has a core beside the learner's and evaluations have servers "
+        "of their own, else local",
     )
     train.add_argument(
         "--ray-address",
@@ -111,10 +114,10 @@ def add_parser(commands: Commands) -> None:
         "--simulators",
         type=int,
         metavar="N",
-        help="with --sampling ray: N sampling workers, each starting a simulator of its own "
-        "where Ray places it (--set simulator_args=... its sim-server options; default "
-        "--backend sumo), stopped with the run; without --server a local one answers the "
-        "handshake and the evaluations",
+        help="with --sampling processes or ray: N sampling workers, each starting a simulator "
+        "of its own beside it (with Ray, where Ray places it; --set simulator_args=... its "
+        "sim-server options, default --backend sumo), stopped with the run; without --server "
+        "a local one answers the handshake and the evaluations",
     )
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=run)

@@ -56,6 +56,9 @@ class Slot:
     states: list[np.ndarray] = field(default_factory=list)
     accelerations: list[float] = field(default_factory=list)
     lanes: list[int] = field(default_factory=list)
+    ended_at: int | None = None
+    """Once finished: how many of the transitions that came with it, in their order, were
+    taken up to its last one (None: all of them); its row's env step count."""
 
 
 @dataclass
@@ -64,6 +67,22 @@ class Collected:
 
     transitions: list[Transition] = field(default_factory=list)
     finished: list[Slot] = field(default_factory=list)
+    failed_episodes: int = 0
+    """Simulator episodes that failed and were started again (by a sampling worker)."""
+    reconnects: int = 0
+    """Lost servers a sampling worker connected to again (or its own simulator restarted)."""
+
+    def extend(self, other: Collected) -> None:
+        """Append what another receive brought, keeping where each finished episode ended
+        among all the transitions (`Slot.ended_at`)."""
+        offset = len(self.transitions)
+        for slot in other.finished:
+            ended = slot.ended_at if slot.ended_at is not None else len(other.transitions)
+            slot.ended_at = offset + ended
+        self.transitions += other.transitions
+        self.finished += other.finished
+        self.failed_episodes += other.failed_episodes
+        self.reconnects += other.reconnects
 
 
 Chooser = Callable[[Sequence[Slot]], tuple[np.ndarray, np.ndarray]]
@@ -164,6 +183,7 @@ class LocalCollector:
         slot.episode.add(next_obs, reward)
         slot.obs, slot.x, slot.mask = next_obs, next_x, next_mask
         if terminated or truncated:
+            slot.ended_at = len(collected.transitions)
             collected.finished.append(slot)
             self.slots[index] = None
 

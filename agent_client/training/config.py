@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,11 @@ from typing import TYPE_CHECKING, Any
 from agent_client.defaults import DEFAULT_SCENARIO, TRAINING_EVALUATION_SEED, TRAINING_SEED
 from agent_client.errors import UsageError
 from agent_client.rl.td3 import TD3Config
+
+SAMPLING_KINDS = ("auto", "local", "processes", "ray")
+"""Where training episodes run: lock-step in the learner's process, or sampling workers
+(`agent_client.training.chunks`) in processes of their own or on Ray; auto chooses between the
+first two (`TrainConfig.sampling_on`)."""
 
 if TYPE_CHECKING:
     from agent_client.rl.rewards import RewardFn
@@ -160,20 +166,23 @@ class TrainConfig:
     policy that does not jump with every gradient step."""
     torch_threads: int = 1
     """torch intra-op threads (1 is fastest for small networks on a shared CPU)."""
-    sampling: str = "local"
+    sampling: str = "auto"
     """Where training episodes run: local (this process steps every server at once, the learner
-    updating while they simulate) or ray (one asynchronous Ray worker per server, each with a
-    copy of the policy, feeding the replay buffer while the learner updates; docs/ray.md)."""
+    updating while they simulate), processes (one sampling process per server, each with a
+    copy of the policy, feeding the replay buffer while the learner updates), ray (the same
+    workers as Ray actors, across a cluster; docs/ray.md), or auto (`sampling_on`)."""
     sampling_chunk: int = 64
-    """sampling = ray: steps a worker takes per request."""
+    """sampling = processes or ray: steps a worker takes per request."""
     policy_sync_every: int = 500
-    """sampling = ray: transitions between two refreshes of the workers' policy copies."""
+    """sampling = processes or ray: transitions between two refreshes of the workers' policy
+    copies."""
     ray_address: str = ""
     """sampling = ray: "" starts a local Ray, "auto" joins this machine's Ray cluster,
     ray://HOST:10001 one through Ray Client."""
     simulators: int = 0
-    """sampling = ray: N sampling workers, each starting a simulator of its own beside it
-    (`simulator_args`) wherever Ray places it, stopped with it; 0: one worker per server."""
+    """sampling = processes or ray: N sampling workers, each starting a simulator of its own
+    beside it (`simulator_args`; with Ray wherever Ray places it), stopped with it; 0: one
+    worker per server."""
     simulator_args: str = "--backend sumo"
     """The sim-server command line of the simulators the learner starts (without --bind)."""
     learner: TD3Config = field(default_factory=lambda: RECOMMENDED_LEARNER)
@@ -192,15 +201,15 @@ class TrainConfig:
     def _check_sampling(self) -> None:
         if self.simulators < 0:
             raise UsageError(f"simulators must be at least 0, got {self.simulators}")
-        if self.simulators and self.sampling != "ray":
+        if self.simulators and self.sampling == "local":  # auto: processes start them
             raise UsageError(
-                f"simulators {self.simulators} needs sampling = ray: Ray starts them beside its "
-                "sampling workers (--sampling ray)"
+                f"simulators {self.simulators} needs sampling workers to start them beside: "
+                "--sampling processes (on this machine) or --sampling ray"
             )
-        if self.egos > 1 and self.sampling != "local":
+        if self.egos > 1 and self.sampling not in ("auto", "local"):
             raise UsageError(
-                f"egos {self.egos} needs sampling = local: the Ray sampling workers drive one "
-                "ego each (train many egos without --sampling ray)"
+                f"egos {self.egos} needs sampling = local: the sampling workers drive one "
+                f"ego each (train many egos without --sampling {self.sampling})"
             )
 
     def __post_init__(self) -> None:
@@ -213,7 +222,7 @@ class TrainConfig:
             "lane_change": ("auto", "yes", "no"),
             "warmup_policy": ("auto", "idm", "idm+mobil", "random"),
             "residual": ("auto", "none", "idm+mobil"),
-            "sampling": ("local", "ray"),
+            "sampling": SAMPLING_KINDS,
         }
         for name, valid in choices.items():
             if getattr(self, name) not in valid:
@@ -253,6 +262,19 @@ class TrainConfig:
             raise UsageError(
                 f"lane_decision_interval must be > 0, got {self.lane_decision_interval}"
             )
+
+    def sampling_on(self, servers: int, evaluation_servers: int, cores: int | None = None) -> str:
+        """The sampling a run on `servers` training servers uses: `sampling` itself, or for
+        auto a sampling process per server where the servers are free for them (one ego per
+        simulation; evaluations on servers of their own, or none) and each worker with its
+        simulator has a core beside the learner's, else local (docs/learner.md, "Sampling")."""
+        if self.sampling != "auto":
+            return self.sampling
+        if self.simulators:
+            return "processes"
+        cores = (os.cpu_count() or 1) if cores is None else cores
+        free = self.eval_every == 0 or evaluation_servers > 0
+        return "processes" if self.egos == 1 and free and cores >= servers + 1 else "local"
 
     def reward_fn(self) -> RewardFn:
         """The reward `reward` with `reward_params`; `UsageError` naming a bad parameter."""

@@ -7,6 +7,8 @@ linearly from 1 to `noise_final` over `noise_decay_steps` environment steps.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from agent_client.drivers.idm import IDMDriver
@@ -14,7 +16,9 @@ from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.drivers.policy import ActionScale
 from agent_client.rl.lanes import LANE_COMMANDS
 from agent_client.training.collect import Slot
-from agent_client.training.config import TrainConfig
+
+if TYPE_CHECKING:  # not at run time: a sampling worker process never imports torch
+    from agent_client.training.config import TrainConfig
 
 WARMUP_LANE_PROBABILITY = 0.05
 """Share of warm-up decisions with a random (possible) lane change."""

@@ -49,13 +49,20 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
         else ""
     )
     where_trained = (
-        f"{config.simulators} simulators the Ray sampling workers start beside them"
+        f"{config.simulators} simulators the sampling workers start beside them"
         if config.simulators
         else f"{servers} server(s)"
     )
+    sampling = {
+        "local": "this process steps the servers in lock-step between its updates",
+        "processes": "a process per server steps it while this one updates",
+        "ray": "a Ray actor per server steps it while this one updates",
+    }[trainer.sampling]
+    why = " (auto)" if config.sampling == "auto" else ""
     return [
         f"training {config.learner.algo.upper()} on {', '.join(config.scenarios)} (reward "
         f"{config.reward}, {trainer.features.name} features, {lanes}{egos}) on {where_trained}",
+        f"  sampling: {trainer.sampling}{why}: {sampling}",
         f"  evaluations: {evaluations}",
         f"  targets: no collision, <= {100 * JERK_TARGET:g} % of jerk above "
         f"{JERK_COMFORT_LIMIT:g} m/s^3, <= {100 * HEADWAY_TARGET:g} % of headways under 1 s, "

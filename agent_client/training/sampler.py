@@ -2,16 +2,17 @@
 
 The worker is the trainer's own `LocalCollector` on one `RemoteEnv`, with a chooser of its own
 (`Exploration`: a numpy copy of the policy, its own exploration noise, the warm-up driver) in
-place of the trainer's agent. `RayCollector` runs one per sim-server as a Ray actor and asks it
-for chunks of steps while the learner updates; the class itself needs no Ray, so tests and a
-single machine can run it in-process.
+place of the trainer's agent. `ChunkCollector` (`agent_client.training.chunks`) runs one per
+sim-server, in a process of its own or as a Ray actor, and asks it for chunks of steps while the
+learner updates; the class itself needs neither, so tests can run it in-process. It never
+imports torch.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -20,7 +21,7 @@ from agent_client.defaults import RESET_TIMEOUT_S
 from agent_client.drivers.mobil import DECISION_INTERVAL
 from agent_client.drivers.policy import ActionScale, lane_choice
 from agent_client.envs.remote_env import RemoteEnv
-from agent_client.errors import ServerError, ServerUnavailable
+from agent_client.errors import BridgeError, ServerError, ServerUnavailable
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.greedy import NumpyActor, NumpyCritic
 from agent_client.rl.lanes import choose_lanes
@@ -29,9 +30,9 @@ from agent_client.rl.rewards import RewardFn
 from agent_client.training.collect import (
     EPISODE_FAILURES,
     MAX_FAILURES_IN_A_ROW,
+    Collected,
     LocalCollector,
     Slot,
-    Transition,
 )
 from agent_client.training.exploration import WarmupDriver
 from agent_client.training.simulators import OwnSimulator
@@ -80,14 +81,14 @@ class Settings:
     lane_epsilon: float = 0.0
 
 
+class SamplingFailed(BridgeError):
+    """A sampling worker raised (its server is gone and no retry was set), exited or hung."""
+
+
 @dataclass
-class Chunk:
+class Chunk(Collected):
     """What one request brought back from a worker."""
 
-    transitions: list[Transition] = field(default_factory=list)
-    finished: list[Slot] = field(default_factory=list)
-    failed_episodes: int = 0
-    reconnects: int = 0
     seconds: float = 0.0
     """Time the worker spent sampling it."""
 
@@ -200,8 +201,7 @@ class SamplingWorker:
                 chunk.reconnects += 1
                 continue
             self._failures_in_a_row = 0
-            chunk.transitions += collected.transitions
-            chunk.finished += collected.finished
+            chunk.extend(collected)
         for slot in chunk.finished:
             slot.env_index = self.index
         chunk.seconds = time.perf_counter() - started
@@ -246,6 +246,16 @@ class SamplingWorker:
 
     def _episode_started(self, index: int) -> None:
         self.exploration.noise.reset()
+
+
+def policy_arrays(policy_state: dict[str, Any]) -> dict[str, list[np.ndarray]]:
+    """What `Exploration.load` reads of `Agent.policy_state_dict()`, as float32 numpy arrays
+    (a process that unpickles them needs no torch)."""
+    return {
+        key: [_float32(p) for p in policy_state[key]]
+        for key in ("actor", "critic")
+        if policy_state.get(key)
+    }
 
 
 def _float32(tensor: Any) -> np.ndarray:

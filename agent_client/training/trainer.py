@@ -32,7 +32,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -61,6 +61,7 @@ from agent_client.rl.policy import Policy
 from agent_client.rl.replay import ReplayBuffer
 from agent_client.rl.rewards import TRAFFIC_REWARDS, q_upper_bound
 from agent_client.rl.td3 import Agent
+from agent_client.training.chunks import ChunkCollector, chunk_collector
 from agent_client.training.collect import (
     EPISODE_FAILURES,
     MAX_FAILURES_IN_A_ROW,
@@ -88,9 +89,6 @@ from agent_client.training.progress import (
 from agent_client.training.run_log import RunLog
 from protocol.messages import ROAD_RANGE, Observation, Road
 from protocol.version import ROAD_VERSION
-
-if TYPE_CHECKING:
-    from agent_client.training.ray_collect import RayCollector
 
 T = TypeVar("T")
 
@@ -179,6 +177,8 @@ class Trainer:
         self.scale = ActionScale.from_schema(
             self.env.welcome.action, residual, config.decision_interval
         )
+        self.sampling = config.sampling_on(n_envs, len(self.eval_servers))
+        """Where training episodes run: local, processes or ray (auto resolved)."""
         n_envs *= config.egos  # one exploration noise process per ego slot
         self.agent = Agent(
             self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs
@@ -213,19 +213,18 @@ class Trainer:
         # The leader-at-entry ceiling costs the server a run-on of up to ~100 ms at every
         # episode end: only the evaluations, whose targets use it, ask for it.
         reset_options = {"report_ceiling": False} if _offers(self.env, "report_ceiling") else {}
-        self.collector: LocalCollector | MultiEgoCollector | RayCollector
+        self.collector: LocalCollector | MultiEgoCollector | ChunkCollector
         if config.egos > 1:  # one multi-ego simulation per server, in the envs' own sessions
             links = [MultiEgoLink.sharing(env, config.egos) for env in self.vec.envs]
             self.collector = MultiEgoCollector(
                 links, self.features, self.lanes, self.scale, self._choose_egos,
                 self._next_seed, self.agent.reset_noise, reset_options,
             )  # fmt: skip
-        elif config.sampling == "ray":  # one asynchronous Ray worker per server (docs/ray.md)
-            from agent_client.training.ray_collect import ray_collector
-
-            self.collector = ray_collector(
+        elif self.sampling != "local":  # a worker per server, in a process or on Ray
+            self.collector = chunk_collector(
                 config, self.vec, self.features, self.lanes, reset_options,
-                residual=self.scale.residual, warmup_policy=self.warmup.policy,
+                sampling=self.sampling, residual=self.scale.residual,
+                warmup_policy=self.warmup.policy,
                 policy_state=self.agent.policy_state_dict,
                 global_step=lambda: self.progress.global_step,
                 lane_epsilon=lambda: self.agent.lane_epsilon, next_seed=self._next_seed,
@@ -244,6 +243,8 @@ class Trainer:
         (the checkpoint keeps it: a resumed run starts it again)."""
         self._episodes_started = 0
         self._updates_due = 0
+        self._received = 0
+        """Transitions the last receive brought (finished episodes' rows count up to theirs)."""
         self._losses: list[float] = []
         self._actor_learned = False
         """The actor has had an update (a residual policy's waits for its burn-in)."""
@@ -297,9 +298,12 @@ class Trainer:
                 while not self._finished():
                     self._poll_background()
                     for slot in self._resilient(self._iteration):
-                        self._episode_done(slot, log)
+                        if self.progress.episode < self.config.episodes:  # a chunk brings several
+                            self._episode_done(slot, log)
                 if self._pending is not None and not self._interrupted:
                     self._collect(log)
+            if isinstance(self.collector, ChunkCollector):  # the servers are this process's again
+                self.collector.release(self.env.timeout_s)
         finally:
             try:
                 self.progress.wall_time = time.monotonic() - self._started
@@ -313,6 +317,8 @@ class Trainer:
                 self._pending = None
                 if self.eval_pool is not None:
                     self.eval_pool.cancel()
+                if isinstance(self.collector, ChunkCollector):  # a failed run: no worker left
+                    self.collector.close()
         self.say(self.profile.line())
         return self.progress
 
@@ -401,9 +407,12 @@ class Trainer:
         return collected.finished
 
     def _store(self, collected: Collected) -> None:
+        self._received = len(collected.transitions)
         for t in collected.transitions:
             self.buffer.add(t.x, t.u, t.lane, t.reward, t.next_x, t.terminated, t.mask, t.next_mask)
         self.progress.global_step += len(collected.transitions)
+        self.progress.failed_episodes += collected.failed_episodes  # a sampling worker's
+        self.progress.reconnects += collected.reconnects
         self._updates_due += self.agent.updates_due(len(collected.transitions))
 
     def _choose(self, slots: Sequence[Slot]) -> tuple[np.ndarray, np.ndarray]:
@@ -555,10 +564,11 @@ class Trainer:
         q_mean = float(np.mean(np.take_along_axis(q, np.array(slot.lanes)[:, None], axis=1)))
         losses, self._losses = self._losses, []
         ego = {"ego": slot.ego_id} if isinstance(slot, EgoSlot) else {}
+        ended = self._received if slot.ended_at is None else slot.ended_at
         return {
             "episode": self.progress.episode,
             **ego,
-            "global_step": self.progress.global_step,
+            "global_step": self.progress.global_step - self._received + ended,
             "wall_time": round(self.progress.wall_time, 2),
             **{k: v for k, v in summary.to_dict().items() if k != "episode"},
             "critic_loss": float(np.mean(losses)) if losses else float("nan"),

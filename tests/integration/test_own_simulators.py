@@ -1,5 +1,6 @@
-"""Simulators the learner starts for itself: one beside each Ray sampling worker
-(``agent-client train --sampling ray --simulators N``), gone with the run however it ends."""
+"""Simulators the learner starts for itself: one beside each sampling worker, a process of its
+own or a Ray actor (``agent-client train --sampling processes|ray --simulators N``), gone with
+the run however it ends."""
 
 from __future__ import annotations
 
@@ -50,11 +51,30 @@ def simulators_under(folder: Path) -> list[int]:
     return found
 
 
+def sampling_processes_under(folder: Path) -> list[int]:
+    """Live sampling worker processes (``multiprocessing`` children) of a run whose TMPDIR is
+    `folder`."""
+    found = []
+    for environ in Path("/proc").glob("[0-9]*/environ"):
+        try:
+            words = environ.read_bytes().split(b"\0")
+            cmdline = (environ.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmdline and f"TMPDIR={folder}".encode() in words:
+            pid = int(environ.parent.name)
+            if alive(pid):
+                found.append(pid)
+    return found
+
+
 def wait_until_gone(folder: Path, timeout_s: float) -> None:
+    """The run's simulators and sampling processes exit within `timeout_s`."""
     deadline = time.monotonic() + timeout_s
-    while simulators_under(folder):
+    while simulators_under(folder) or sampling_processes_under(folder):
         assert time.monotonic() < deadline, (
-            f"simulators outlived the run: {simulators_under(folder)}"
+            f"simulators {simulators_under(folder)} or sampling processes "
+            f"{sampling_processes_under(folder)} outlived the run"
         )
         time.sleep(0.2)
 
@@ -67,12 +87,16 @@ def short_tmp() -> Iterator[Path]:
     shutil.rmtree(folder, ignore_errors=True)
 
 
-def train(tmp_path: Path, *extra: str) -> subprocess.Popen[str]:
-    """``agent-client train --sampling ray --simulators 2`` with its temporary files (the
+SAMPLING = [pytest.param("ray", marks=pytest.mark.ray), "processes"]
+"""The sampling workers that start simulators of their own."""
+
+
+def train(tmp_path: Path, sampling: str, *extra: str) -> subprocess.Popen[str]:
+    """``agent-client train --sampling SAMPLING --simulators 2`` with its temporary files (the
     simulators' sockets) under `tmp_path`."""
     env = {**os.environ, "TMPDIR": str(tmp_path)}
     command = [
-        sys.executable, "-m", "agent_client", "train", "--sampling", "ray", "--simulators", "2",
+        sys.executable, "-m", "agent_client", "train", "--sampling", sampling, "--simulators", "2",
         "--out", str(tmp_path / "run"), "--quiet", "--decision-interval", "1.0",
         "--set", "eval_every=0", "--set", "warmup_policy=idm", "--set", "checkpoint_every=1",
         *extra,
@@ -115,10 +139,12 @@ def test_a_worker_whose_simulator_dies_starts_another(
     assert simulators_under(tmp_path) == []
 
 
-@pytest.mark.ray
-def test_ray_starts_the_simulators_and_they_stop_with_the_run(short_tmp: Path) -> None:
+@pytest.mark.parametrize("sampling", SAMPLING)
+def test_the_workers_start_the_simulators_and_they_stop_with_the_run(
+    short_tmp: Path, sampling: str
+) -> None:
     tmp_path = short_tmp
-    process = train(tmp_path, "--episodes", "6")
+    process = train(tmp_path, sampling, "--episodes", "6")
     seen: set[int] = set()
     try:
         while process.poll() is None:  # the run's simulators: 2 beside the workers, 1 here
@@ -135,16 +161,17 @@ def test_ray_starts_the_simulators_and_they_stop_with_the_run(short_tmp: Path) -
     wait_until_gone(tmp_path, 30.0)
 
 
-@pytest.mark.ray
+@pytest.mark.parametrize("sampling", SAMPLING)
 @pytest.mark.parametrize("ending", [signal.SIGINT, signal.SIGKILL])
 def test_the_simulators_do_not_outlive_a_stopped_or_killed_learner(
-    short_tmp: Path, ending: signal.Signals
+    short_tmp: Path, ending: signal.Signals, sampling: str
 ) -> None:
     tmp_path = short_tmp
-    process = train(tmp_path, "--episodes", "1000")
+    process = train(tmp_path, sampling, "--episodes", "1000")
     try:
         wait_for_episodes(tmp_path / "run" / "episodes.csv", 2, timeout_s=240)
         assert len(simulators_under(tmp_path)) == 3
+        assert len(sampling_processes_under(tmp_path)) == (2 if sampling == "processes" else 0)
         process.send_signal(ending)
         process.communicate(timeout=120)
     finally:

@@ -118,6 +118,8 @@ def test_ray_sampling_needs_evaluation_servers_of_its_own(
         Trainer(ray_config(eval_every=10), [fake.address], tmp_path / "run")
 
 
-def test_sampling_must_be_local_or_ray() -> None:
-    with pytest.raises(UsageError, match="sampling 'spark' is not one of: local, ray"):
+def test_sampling_must_be_one_of_the_kinds() -> None:
+    with pytest.raises(
+        UsageError, match="sampling 'spark' is not one of: auto, local, processes, ray"
+    ):
         apply_overrides(TrainConfig(), {"sampling": "spark"})

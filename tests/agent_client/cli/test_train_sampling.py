@@ -1,4 +1,4 @@
-"""`agent-client train --sampling ray --ray-address ...` reaches the training configuration."""
+"""`agent-client train --sampling KIND --ray-address ...` reaches the training configuration."""
 
 from __future__ import annotations
 
@@ -13,9 +13,11 @@ def config_of(*argv: str) -> TrainConfig:
     return build_config(build_parser().parse_args(["train", *argv]))
 
 
-def test_sampling_is_local_unless_asked() -> None:
+def test_sampling_is_chosen_by_the_run_unless_asked() -> None:
     config = config_of()
-    assert (config.sampling, config.ray_address) == ("local", "")
+    assert (config.sampling, config.ray_address) == ("auto", "")
+    assert config_of("--sampling", "processes").sampling == "processes"
+    assert config_of("--sampling", "local").sampling == "local"
 
 
 def test_ray_sampling_and_its_address_are_settings() -> None:

@@ -191,3 +191,31 @@ def test_a_bad_real_roads_setting_is_a_usage_error_naming_it(
 ) -> None:
     with pytest.raises(UsageError, match=named):
         TrainConfig(**setting)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("settings", "servers", "evaluation_servers", "cores", "sampling"),
+    [
+        ({}, 1, 1, 2, "processes"),  # the plain command: a core for the learner, one for SUMO
+        ({}, 2, 1, 2, "local"),  # two simulators and the learner on two cores: lock-step
+        ({}, 14, 1, 16, "processes"),
+        ({}, 1, 0, 2, "local"),  # evaluations on the training server: it must stay here
+        ({"eval_every": 0}, 1, 0, 2, "processes"),
+        ({"egos": 4}, 1, 1, 16, "local"),  # many egos: one multi-ego session per server
+        ({"sampling": "local"}, 1, 1, 16, "local"),
+        ({"sampling": "ray"}, 2, 1, 2, "ray"),
+        ({"simulators": 3}, 1, 1, 2, "processes"),  # workers that start their simulators
+    ],
+)
+def test_auto_sampling_uses_processes_where_the_servers_and_the_cores_are_free(
+    settings: dict[str, object], servers: int, evaluation_servers: int, cores: int, sampling: str
+) -> None:
+    config = apply_overrides(TrainConfig(), settings)
+    assert config.sampling_on(servers, evaluation_servers, cores) == sampling
+
+
+def test_simulators_need_sampling_workers_and_egos_lock_step() -> None:
+    with pytest.raises(UsageError, match="--sampling processes"):
+        TrainConfig(simulators=2, sampling="local")
+    with pytest.raises(UsageError, match="egos 2 needs sampling = local"):
+        TrainConfig(egos=2, sampling="processes")

@@ -10,10 +10,11 @@ from agent_client.training.config import TrainConfig
 from agent_client.training.plan import plan_lines
 
 
-def trainer_for(config: TrainConfig) -> Any:
+def trainer_for(config: TrainConfig, sampling: str = "processes") -> Any:
     """What `plan_lines` reads of a trainer, without a server."""
     return SimpleNamespace(
         config=config,
+        sampling=sampling,
         agent=SimpleNamespace(n_lane_actions=3),
         vec=SimpleNamespace(envs=[object(), object()]),
         reference=SimpleNamespace(name="idm+mobil"),
@@ -37,3 +38,11 @@ def test_over_several_scenarios_the_plan_says_what_is_judged_where() -> None:
     assert "merge, exit, cflc" in text and "per scenario on held-out seeds" in text
     assert "collisions, route ends and the ceiling per scenario" in text
     assert "jerk, headways and speed over the whole evaluation" in text
+
+
+def test_the_plan_says_who_steps_the_servers() -> None:
+    chosen = "\n".join(plan_lines(trainer_for(TrainConfig()), Path("runs/x")))
+    assert "sampling: processes (auto): a process per server steps it" in chosen
+    asked = TrainConfig(sampling="local")
+    text = "\n".join(plan_lines(trainer_for(asked, "local"), Path("runs/x")))
+    assert "sampling: local: this process steps the servers in lock-step" in text

@@ -1,0 +1,184 @@
+"""Sampling workers in processes of their own: `ProcessWorkers`, the `Workers` group of
+``sampling = "processes"``.
+
+One process per server (or per simulator it starts), each a `SamplingWorker` behind a pipe, so
+that stepping the servers never waits for the learner's update and the update never waits for a
+lock-step round trip: on a machine with a core for the learner and cores for the simulators the
+learner updates all the time while the workers sample. The processes are started with
+``spawn`` (a fork of a process that has run torch is not safe) and never import torch: the
+policy copy they act with is numpy (`agent_client.rl.greedy`).
+
+The pipe is private to the learner and the process it started, as in Stable-Baselines3's
+``SubprocVecEnv`` and Tianshou's subprocess workers: requests and chunks cross it as Python
+objects (pickled by `multiprocessing`); nothing read from a network is unpickled. A worker
+whose learner is gone (its pipe closed, or its parent changed) stops and says goodbye to its
+server; a simulator it started stops with it (``--exit-with-parent``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import signal
+import time
+from collections.abc import Iterator, Sequence
+from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
+from typing import Any
+
+from agent_client.training.sampler import (
+    Chunk,
+    SamplingFailed,
+    SamplingWorker,
+    Settings,
+    WorkerSpec,
+    policy_arrays,
+)
+from agent_client.training.simulators import READY_TIMEOUT_S
+
+START_TIMEOUT_S = 60.0
+"""How long a worker process may take to start Python and connect to its server (its own
+simulator's start-up comes on top)."""
+CLOSE_GRACE_S = 10.0
+"""How long a worker may take to say goodbye to its server before it is killed."""
+LEARNER_CHECK_S = 1.0
+"""How often an idle worker checks that its learner is still there."""
+
+
+class ProcessWorkers:
+    """`SamplingWorker`s in processes of their own on this machine, one per spec."""
+
+    def __init__(self) -> None:
+        self._context = multiprocessing.get_context("spawn")
+        self.processes: list[BaseProcess] = []
+        self.pipes: list[Connection] = []
+        self._failed: dict[int, str] = {}
+        """Workers that could not be asked (their pipe broke): why, for `answer`."""
+
+    def start(self, specs: Sequence[WorkerSpec], first_seed: int) -> None:
+        for index, spec in enumerate(specs):
+            pipe, child = self._context.Pipe()
+            process = self._context.Process(
+                target=serve,
+                args=(child, spec, index, len(specs), first_seed),
+                name=f"av-bridge sampling worker {index}",
+                daemon=True,  # stopped at the learner's exit if close() was never reached
+            )
+            process.start()
+            child.close()
+            self.processes.append(process)
+            self.pipes.append(pipe)
+        for index, spec in enumerate(specs):
+            self._wait_ready(index, spec)
+
+    def share(self, policy_state: dict[str, Any]) -> Any:
+        return policy_arrays(policy_state)
+
+    def ask(self, index: int, n_steps: int, settings: Settings, policy: Any | None) -> None:
+        try:
+            self.pipes[index].send(("sample", n_steps, settings, policy))
+        except OSError as exc:  # it exited: `answer` says so
+            self._failed[index] = self._exited(index, exc)
+
+    def drop_episodes(self, index: int) -> None:
+        with contextlib.suppress(OSError):  # an exited worker is reported by `answer`
+            self.pipes[index].send(("drop",))
+
+    def wait(self, indices: Sequence[int], timeout_s: float) -> list[int]:
+        failed = [i for i in indices if i in self._failed]
+        if failed:
+            return failed
+        by_pipe = {self.pipes[i]: i for i in indices}
+        return sorted(by_pipe[pipe] for pipe in wait(list(by_pipe), timeout_s))  # type: ignore[index]
+
+    def answer(self, index: int) -> Chunk:
+        if index in self._failed:
+            raise SamplingFailed(self._failed.pop(index))
+        try:
+            kind, content = self.pipes[index].recv()
+        except (EOFError, OSError) as exc:
+            raise SamplingFailed(self._exited(index, exc)) from exc
+        if kind != "chunk":
+            raise SamplingFailed(str(content))
+        return content  # type: ignore[no-any-return]
+
+    def close(self) -> None:
+        """Ask every worker to stop, wait `CLOSE_GRACE_S` for them together, kill the rest."""
+        for pipe in self.pipes:
+            with contextlib.suppress(OSError):
+                pipe.send(("close",))
+        deadline = time.monotonic() + CLOSE_GRACE_S
+        for process in self.processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+            if process.is_alive():
+                process.kill()
+                process.join(CLOSE_GRACE_S)
+        for pipe in self.pipes:
+            pipe.close()
+        self.processes, self.pipes = [], []
+        self._failed.clear()
+
+    def _wait_ready(self, index: int, spec: WorkerSpec) -> None:
+        """The worker's first message: ready, or why it could not start."""
+        timeout_s = START_TIMEOUT_S + spec.timeout_s
+        if spec.simulator_args is not None:
+            timeout_s += READY_TIMEOUT_S
+        where = "its own simulator" if spec.simulator_args is not None else spec.address
+        if not self.pipes[index].poll(timeout_s):
+            raise SamplingFailed(
+                f"sampling worker {index} ({where}) did not start within {timeout_s:g} s"
+            )
+        try:
+            kind, content = self.pipes[index].recv()
+        except (EOFError, OSError) as exc:
+            why = self._exited(index, exc)
+            raise SamplingFailed(f"sampling worker {index} ({where}): {why}") from exc
+        if kind != "ready":
+            raise SamplingFailed(f"sampling worker {index} ({where}) could not start: {content}")
+
+    def _exited(self, index: int, exc: BaseException) -> str:
+        process = self.processes[index]
+        process.join(1.0)
+        code = process.exitcode
+        return f"its process exited (exit code {code})" if code is not None else f"{exc!r}"
+
+
+def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_seed: int) -> None:
+    """A worker process's life: answer the learner's requests until it says close or is gone."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the learner's: it closes us
+    parent = os.getppid()
+    try:
+        worker = SamplingWorker(spec, index, stride, first_seed)
+    except Exception as exc:  # sent to the learner, which raises it
+        with contextlib.suppress(OSError):
+            pipe.send(("error", _why(exc)))
+        return
+    try:
+        pipe.send(("ready", None))
+        for request in _requests(pipe, parent):
+            if request[0] == "sample":
+                try:
+                    reply: tuple[str, Any] = ("chunk", worker.sample(*request[1:]))
+                except Exception as exc:  # the learner decides what a failure means
+                    reply = ("error", _why(exc))
+                pipe.send(reply)
+            elif request[0] == "drop":
+                worker.drop_episodes()
+            else:  # close
+                return
+    except (EOFError, OSError):  # the learner is gone
+        return
+    finally:
+        worker.close()
+
+
+def _requests(pipe: Connection, parent: int) -> Iterator[tuple[Any, ...]]:
+    """The learner's requests, until it is gone (its end closed, or we were orphaned)."""
+    while os.getppid() == parent:
+        if pipe.poll(LEARNER_CHECK_S):
+            yield pipe.recv()
+
+
+def _why(exc: Exception) -> str:
+    return str(exc) or type(exc).__name__

@@ -1,0 +1,191 @@
+"""Sampling in processes of their own (``sampling = "processes"``) on real SUMO: the same
+transitions as the lock-step collector, training over a pool, a worker that dies, a run's
+end."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent_client.drivers.policy import ActionScale, lane_choice
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.rl.features import FeatureMap
+from agent_client.rl.greedy import NumpyActor
+from agent_client.rl.td3 import Agent, TD3Config
+from agent_client.training.chunks import ChunkCollector
+from agent_client.training.collect import LocalCollector, Slot, Transition
+from agent_client.training.config import TrainConfig, apply_overrides
+from agent_client.training.process_collect import ProcessWorkers
+from agent_client.training.sampler import SamplingFailed, Settings, policy_arrays
+from agent_client.training.trainer import Trainer
+from tests.conftest import RunningServer, sim_server
+from tests.integration.test_ray_sampling import spec as worker_spec
+from tests.integration.test_workers import alive
+
+pytestmark = [pytest.mark.sumo, pytest.mark.slow]
+
+SEED = 300
+
+
+@pytest.fixture(scope="module")
+def sumo(scenario_cache: Path) -> Iterator[RunningServer]:
+    with sim_server("--backend", "sumo", cache_dir=scenario_cache) as server:
+        yield server
+
+
+def greedy_policy() -> dict[str, object]:
+    agent = Agent(FeatureMap("cf").dim, 1, TD3Config(compile=False), seed=3)
+    return agent.policy_state_dict()
+
+
+def process_transitions(address: str, policy: dict[str, object], n: int) -> list[Transition]:
+    spec = worker_spec(address)
+    collector = ChunkCollector(
+        ProcessWorkers(), [spec], lambda: policy, lambda: Settings(True, noise_scale=0.0),
+        lambda: SEED, chunk_steps=25,
+    )  # fmt: skip
+    transitions: list[Transition] = []
+    try:
+        while len(transitions) < n:
+            collector.send()
+            transitions += collector.receive().transitions
+    finally:
+        collector.close()
+    return transitions[:n]
+
+
+def lock_step_transitions(address: str, policy: dict[str, object], n: int) -> list[Transition]:
+    """The trainer's `LocalCollector` on the same server, seeds and greedy policy."""
+    spec = worker_spec(address)
+    env = RemoteEnv(address, "cf", reward=spec.reward, timeout_s=10.0, **spec.options)
+    actor = NumpyActor(policy_arrays(policy)["actor"])
+
+    def choose(slots: Sequence[Slot]) -> tuple[np.ndarray, np.ndarray]:
+        u = actor(np.stack([slot.x for slot in slots]).astype(np.float32))
+        return np.clip(u, -1.0, 1.0), np.zeros(len(slots), int)
+
+    scale = ActionScale.from_schema(env.welcome.action, "", 0.1)
+    seeds = itertools.count(SEED)
+    local = LocalCollector(
+        [env], FeatureMap("cf"), lane_choice(1, 1, True, ""), scale, choose, lambda: next(seeds)
+    )
+    transitions: list[Transition] = []
+    try:
+        while len(transitions) < n:
+            local.send()
+            transitions += local.receive().transitions
+    finally:
+        env.close()
+    return transitions[:n]
+
+
+def test_process_workers_give_the_lock_step_collectors_transitions(sumo: RunningServer) -> None:
+    """A greedy policy (no noise) on the same seeds: the same states, actions and rewards,
+    whether the learner's process steps the server or a sampling process does."""
+    policy = greedy_policy()
+    n = 60  # 2 s episodes of 0.1 s: three episodes, two resets between them
+    apart = process_transitions(sumo.address, policy, n)
+    together = lock_step_transitions(sumo.address, policy, n)
+    assert len(apart) == len(together) == n
+    for a, b in zip(apart, together, strict=True):
+        np.testing.assert_allclose(a.x, b.x, rtol=1e-6)
+        np.testing.assert_allclose(a.next_x, b.next_x, rtol=1e-6)
+        assert a.u == pytest.approx(b.u, abs=1e-6)
+        assert a.reward == pytest.approx(b.reward, abs=1e-9)
+        assert a.terminated == b.terminated
+    assert len({round(float(t.u), 4) for t in apart}) > 1  # the policy acted, not a constant
+
+
+def test_a_worker_that_dies_fails_the_receive_by_name(sumo: RunningServer) -> None:
+    spec = replace(worker_spec(sumo.address), timeout_s=5.0)
+    workers = ProcessWorkers()
+    collector = ChunkCollector(
+        workers, [spec], lambda: greedy_policy(), lambda: Settings(False), lambda: 0,
+        chunk_steps=20,
+    )  # fmt: skip
+    try:
+        collector.send()
+        assert len(collector.receive().transitions) >= 20
+        pid = workers.processes[0].pid
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        collector.send()
+        with pytest.raises(SamplingFailed, match=r"sampling worker 0 \(tcp://.*exit code -9"):
+            collector.receive()
+    finally:
+        collector.close()
+    assert not alive(pid)
+
+
+def test_a_worker_that_cannot_take_its_server_says_why(sumo: RunningServer) -> None:
+    holder = RemoteEnv(sumo.address, "cf")  # the server serves one client at a time
+    collector = ChunkCollector(
+        ProcessWorkers(), [worker_spec(sumo.address)], lambda: greedy_policy(),
+        lambda: Settings(False), lambda: 0,
+    )  # fmt: skip
+    try:
+        with pytest.raises(SamplingFailed, match=r"could not start: .*busy"):
+            collector.send()
+    finally:
+        collector.close()
+        holder.close()
+
+
+def processes_config(**overrides: object) -> TrainConfig:
+    settings = {
+        "episodes": 8,
+        "eval_every": 0,
+        "sampling": "processes",
+        "sampling_chunk": 32,
+        "policy_sync_every": 100,
+        "scenario_options": {"max_episode_time": 5.0},
+        "learner": {"learning_starts": 200, "compile": False, "batch_size": 64},
+        **overrides,
+    }
+    return apply_overrides(TrainConfig(), settings)
+
+
+def test_the_trainer_samples_in_processes_over_a_pool(scenario_cache: Path, tmp_path: Path) -> None:
+    """Two sampling processes on one ``--pool 2`` address: both sessions drive, the learner
+    learns from what they bring, and the processes are gone after the run."""
+    with sim_server(
+        "--backend", "sumo", "--pool", "2", cache_dir=scenario_cache, ready_timeout_s=180
+    ) as pool:
+        trainer = Trainer(processes_config(), [pool.address] * 2, tmp_path / "run")
+        collector = trainer.collector
+        assert isinstance(collector, ChunkCollector)
+        assert isinstance(collector.workers, ProcessWorkers)
+        workers = collector.workers
+        finished: list[int] = []
+        pids: set[int | None] = set()
+        original = trainer._episode_done
+        trainer._episode_done = lambda slot, log: (  # type: ignore[method-assign]
+            finished.append(slot.env_index),
+            pids.update(p.pid for p in workers.processes),
+            original(slot, log),
+        )
+        try:
+            progress = trainer.run()
+            assert len(pids) == 2
+            assert not any(alive(pid) for pid in pids if pid is not None)  # released at the end
+            assert progress.episode == 8
+            assert progress.global_step >= 8 * 40  # 5 s episodes (or fewer on a crash)
+            assert progress.updates > 0  # learning started: the policy copies acted
+            assert set(finished) == {0, 1}  # both sessions, one worker each
+            assert collector._policy_version >= 2  # refreshed from the learner
+            # the trainer has its sessions back: its own connection drives again
+            trainer.env.reset(seed=1)
+            trainer.env.step(np.zeros(1, np.float32))
+        finally:
+            trainer.close()
+        # all sessions are free again: two more clients take them at once
+        first, second = RemoteEnv(pool.address, "cf"), RemoteEnv(pool.address, "cf")
+        first.close()
+        second.close()
