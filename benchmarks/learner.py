@@ -144,6 +144,7 @@ def training_rate(
             "episodes": 100_000,
             "eval_every": 0,
             "checkpoint_every": 100_000,
+            "sampling": "local",  # the lock-step iteration whose time it breaks down
             "learner": {"learning_starts": learning_starts},
         },
     )

@@ -127,6 +127,7 @@ def run_one(
         "eval_servers": eval_servers,
         "eval_while_training": config.eval_while_training,
         "evaluation_share": trainer.profile.evaluation_share(),
+        "sampling": trainer.sampling,
         "evaluation_share_parts": evaluation_parts(trainer.profile, evaluations),
         "evaluation_episodes_run": sum(int(e["episodes"]) for e in evaluations),
         "evaluation_episodes_saved": sum(int(e.get("episodes_saved", 0)) for e in evaluations),
@@ -159,7 +160,9 @@ def rerun_without_evaluations(
     same env steps and updates at that episode: evaluations on servers of their own leave it
     alone); else the cost is None."""
     episodes = result["episodes_to_converge"]
-    bare = apply_overrides(config, {"eval_every": 0, "episodes": episodes})
+    # the same sampling (auto would choose it by whether evaluations need the servers)
+    changes = {"eval_every": 0, "episodes": episodes, "sampling": result["sampling"]}
+    bare = apply_overrides(config, changes)
     again = run_one(bare, folder.with_name(folder.name + "-without-evaluations"), 60.0, verbose,
                     servers, 0)  # fmt: skip
     # Both stop after the iteration in which that episode ended (the evaluated run as it converges)

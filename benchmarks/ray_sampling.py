@@ -4,7 +4,8 @@ Two SUMO servers (`cf`) on free loopback ports, then, each for `--seconds` of tr
 recommended learner (learning from step 1000):
 
 * **local**: `LocalCollector`, this process stepping 1 and then 2 servers in lockstep;
-* **ray**: `RayCollector`, one asynchronous Ray worker per server (1, then 2) on a local Ray;
+* **ray**: `ChunkCollector` with `RayWorkers`, one asynchronous Ray worker per server (1, then
+  2) on a local Ray;
 
 env steps/s and learner updates/s are measured in the steady state (from 3 s after the first
 update to the end). Then the examples train through the same servers: Stable-Baselines3's TD3

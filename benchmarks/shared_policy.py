@@ -87,6 +87,7 @@ def config_for(egos: int, args: argparse.Namespace) -> TrainConfig:
         {
             "scenario": "ring",
             "egos": egos,
+            "sampling": "local",  # one ego and many under the same lock-step collector
             "episodes": 10_000_000,
             "max_minutes": 10.0,  # a stop in case the clock never starts
             "eval_every": 0,

@@ -119,6 +119,11 @@ def add_parser(commands: Commands) -> None:
         "sim-server options, default --backend sumo), stopped with the run; without --server "
         "a local one answers the handshake and the evaluations",
     )
+    train.add_argument(
+        "--device",
+        help="where the networks learn: cpu (default), cuda, cuda:N, or auto (a CUDA GPU if "
+        "torch sees one, else the CPU)",
+    )
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=run)
 
@@ -156,6 +161,7 @@ def build_config(args: argparse.Namespace) -> TrainConfig:
         "decision_interval": args.decision_interval,
         "stop_when_converged": args.stop_when_converged,
         "sampling": args.sampling,
+        "device": args.device,
         "ray_address": args.ray_address,
         "simulators": args.simulators,
         "max_minutes": args.minutes,
@@ -216,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
     if args.resume is not None:
         saved = json.loads((existing_folder(args.resume, "--resume") / "config.json").read_text())
         config = TrainConfig.from_dict(saved)
-        changes = {"episodes": args.episodes, "max_minutes": args.minutes}
+        changes = {"episodes": args.episodes, "max_minutes": args.minutes, "device": args.device}
         config = apply_overrides(config, {k: v for k, v in changes.items() if v is not None})
         out = args.resume
     else:

@@ -32,7 +32,7 @@ class AdamState:
         return cls(
             [torch.zeros_like(p) for p in params],
             [torch.zeros_like(p) for p in params],
-            torch.zeros(()),
+            torch.zeros((), device=params[0].device),
         )
 
     def state_dict(self) -> dict[str, object]:

@@ -38,6 +38,23 @@ class Batch(NamedTuple):
     next_mask: torch.Tensor | None = None
     """(B, n_lanes) bool: the lane choices that could happen in `next_obs` (None: all)."""
 
+    def to(self, device: torch.device) -> Batch:
+        """The same batch on `device` (copied without waiting where the device allows it)."""
+
+        def moved(tensor: torch.Tensor | None) -> torch.Tensor | None:
+            return None if tensor is None else tensor.to(device, non_blocking=True)
+
+        return Batch(
+            self.obs.to(device, non_blocking=True),
+            self.acceleration.to(device, non_blocking=True),
+            self.lane.to(device, non_blocking=True),
+            self.reward.to(device, non_blocking=True),
+            self.next_obs.to(device, non_blocking=True),
+            self.terminated.to(device, non_blocking=True),
+            moved(self.mask),
+            moved(self.next_mask),
+        )
+
 
 FIELDS = ("obs", "next_obs", "acceleration", "lane", "reward", "terminated", "mask", "next_mask")
 

@@ -191,7 +191,10 @@ class Agent:
         config: TD3Config | None = None,
         seed: int = 0,
         n_envs: int = 1,
+        device: str | torch.device = "cpu",
     ) -> None:
+        """`device`: where the networks learn (`resolve_device`); acting stays on the CPU, on
+        a copy refreshed after every update call where the device is another."""
         if obs_dim < 1 or n_lane_actions < 1 or n_envs < 1:
             raise ValueError(
                 f"need obs_dim, n_lane_actions, n_envs >= 1, got {obs_dim}, {n_lane_actions}, "
@@ -202,8 +205,12 @@ class Agent:
         self.n_lane_actions = n_lane_actions
         seeds = np.random.SeedSequence(seed).generate_state(3 + n_envs)
         init = torch.Generator().manual_seed(int(seeds[0]))
-        actor = init_actor(obs_dim, cfg.hidden_sizes, init)
-        critics = init_critics(obs_dim, n_lane_actions, cfg.hidden_sizes, cfg.n_critics, init)
+        self.device = torch.device(device)
+        actor = [p.to(self.device) for p in init_actor(obs_dim, cfg.hidden_sizes, init)]
+        critics = [
+            p.to(self.device)
+            for p in init_critics(obs_dim, n_lane_actions, cfg.hidden_sizes, cfg.n_critics, init)
+        ]
         self.state = LearnerState(
             actor=actor,
             critics=critics,
@@ -214,8 +221,11 @@ class Agent:
             actor_average=[p.clone() for p in actor],
             critics_average=[p.clone() for p in critics],
         )
-        self._act_actor = NumpyActor(numpy_views(actor))
-        self._act_critic = NumpyCritic(numpy_views(critics))
+        self._on_cpu = self.device.type == "cpu"
+        self._acting = (actor, critics) if self._on_cpu else (_cpu_copy(actor), _cpu_copy(critics))
+        """The networks acting reads: the learner's own on the CPU, else copies of them."""
+        self._act_actor = NumpyActor(numpy_views(self._acting[0]))
+        self._act_critic = NumpyCritic(numpy_views(self._acting[1]))
         self._steps = make_steps(_hyper(cfg), cfg.compile)
         # Exploration (lane epsilon) and target smoothing each have their own generator.
         self.rng = np.random.default_rng(int(seeds[1]))
@@ -337,6 +347,12 @@ class Agent:
         With ``actor=False`` only the critic and its targets learn: used to evaluate a
         pre-trained actor before letting its gradient loose on it.
         """
+        metrics = self._update(batch, actor)
+        self._refresh_acting()
+        return metrics
+
+    def _update(self, batch: Batch, actor: bool) -> dict[str, float]:
+        """`update` without refreshing what acting reads (the caller does, once)."""
         tensors = self._tensors(batch)
         self.n_updates += 1
         delayed = self.n_updates % self.config.policy_delay == 0
@@ -353,9 +369,11 @@ class Agent:
     def update_many(self, batches: list[Batch], actor: bool = True) -> list[dict[str, float]]:
         """`update` for each batch in turn; TD3's critic-then-delayed pairs run as one compiled
         call, which saves the per-call overhead of the second."""
-        if not actor:
-            return [self.update(batch, actor=False) for batch in batches]
         metrics: list[dict[str, float]] = []
+        if not actor:
+            metrics = [self._update(batch, actor=False) for batch in batches]
+            self._refresh_acting()
+            return metrics
         index = 0
         while index < len(batches):
             pairs = self.config.policy_delay == 2 and (self.n_updates + 1) % 2 == 1
@@ -368,12 +386,26 @@ class Agent:
                 metrics.append(dict(zip(METRICS, values[1], strict=True)))
                 index += 2
             else:
-                metrics.append(self.update(batches[index]))
+                metrics.append(self._update(batches[index], actor=True))
                 index += 1
+        self._refresh_acting()
         return metrics
+
+    def _refresh_acting(self) -> None:
+        """Copy the learned networks into the ones acting reads (nothing to do on the CPU,
+        where acting reads the learner's own)."""
+        if self._on_cpu:
+            return
+        with torch.no_grad():
+            for copies, learned in zip(
+                self._acting, (self.state.actor, self.state.critics), strict=True
+            ):
+                torch._foreach_copy_(copies, learned)
 
     def _tensors(self, batch: Batch) -> Tensors:
         n = len(batch.reward)
+        if not self._on_cpu:
+            batch = batch.to(self.device)
         return Tensors(
             obs=batch.obs,
             acceleration=batch.acceleration,
@@ -391,17 +423,17 @@ class Agent:
         at a time (one generator call instead of one per update)."""
         cfg = self.config
         if cfg.target_noise <= 0:
-            return torch.zeros((n, 1))
+            return torch.zeros((n, 1), device=self.device)
         pool = self._smoothing_pool
         if pool is None or self._smoothing_next >= len(pool) or pool.shape[1] != n:
             noise = torch.randn((SMOOTHING_POOL, n, 1), generator=self.torch_generator)
             pool = (noise * cfg.target_noise).clamp(-cfg.target_noise_clip, cfg.target_noise_clip)
-            self._smoothing_pool, self._smoothing_next = pool, 0
+            self._smoothing_pool, self._smoothing_next = pool.to(self.device), 0
         self._smoothing_next += 1
         return pool[self._smoothing_next - 1]
 
     def _all_valid(self, n: int) -> torch.Tensor:
-        return torch.ones((n, self.n_lane_actions), dtype=torch.bool)
+        return torch.ones((n, self.n_lane_actions), dtype=torch.bool, device=self.device)
 
     def behaviour_clone(
         self, obs: np.ndarray, acceleration: np.ndarray, epochs: int, batch_size: int = 256
@@ -411,13 +443,15 @@ class Agent:
         The paper's "primary trained parameter" (§4.3.2): start from an imitation of a
         calibrated driver instead of from zero. The target actor is synchronised afterwards.
         """
-        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32))
-        target = torch.as_tensor(np.asarray(acceleration, dtype=np.float32).reshape(-1, 1))
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device)
+        target = torch.as_tensor(
+            np.asarray(acceleration, dtype=np.float32).reshape(-1, 1), device=self.device
+        )
         params = [p.detach().clone().requires_grad_(True) for p in self.state.actor]
         optimizer = torch.optim.Adam(params, lr=1e-3)
         loss = torch.zeros(())
         for _ in range(epochs):
-            order = torch.from_numpy(self.rng.permutation(len(obs_t)))
+            order = torch.from_numpy(self.rng.permutation(len(obs_t))).to(self.device)
             for start in range(0, len(order), batch_size):
                 index = order[start : start + batch_size]
                 loss = F.mse_loss(actor_forward(params, obs_t[index]), target[index])
@@ -428,6 +462,7 @@ class Agent:
             for position, fitted in enumerate(params):
                 for copy in (self.state.actor, self.state.actor_target, self.state.actor_average):
                     copy[position].copy_(fitted)
+        self._refresh_acting()
         return float(loss.detach())
 
     # ----------------------------------------------------------- checkpoints
@@ -441,21 +476,21 @@ class Agent:
             "obs_dim": self.obs_dim,
             "n_lane_actions": self.n_lane_actions,
             "config": self.config.to_dict(),
-            "actor": [p.clone() for p in s.actor],
-            "actor_target": [p.clone() for p in s.actor_target],
-            "critics": [p.clone() for p in s.critics],
-            "critic_targets": [p.clone() for p in s.critic_targets],
-            "actor_average": [p.clone() for p in s.actor_average],
-            "critics_average": [p.clone() for p in s.critics_average],
-            "actor_adam": s.actor_adam.state_dict(),
-            "critic_adam": s.critic_adam.state_dict(),
+            "actor": _cpu_copy(s.actor),
+            "actor_target": _cpu_copy(s.actor_target),
+            "critics": _cpu_copy(s.critics),
+            "critic_targets": _cpu_copy(s.critic_targets),
+            "actor_average": _cpu_copy(s.actor_average),
+            "critics_average": _cpu_copy(s.critics_average),
+            "actor_adam": _cpu_state(s.actor_adam.state_dict()),
+            "critic_adam": _cpu_state(s.critic_adam.state_dict()),
             "n_updates": self.n_updates,
             "n_transitions": self.n_transitions,
             "update_credit": self._update_credit,
             "lane_epsilon": self.lane_epsilon,
             "rng": self.rng.bit_generator.state,
             "torch_generator": self.torch_generator.get_state(),
-            "smoothing_pool": self._smoothing_pool,
+            "smoothing_pool": None if self._smoothing_pool is None else self._smoothing_pool.cpu(),
             "smoothing_next": self._smoothing_next,
             "noises": [noise.state_dict() for noise in self.noises],
         }
@@ -490,17 +525,21 @@ class Agent:
         self.lane_epsilon = float(state["lane_epsilon"])
         self.rng.bit_generator.state = state["rng"]
         self.torch_generator.set_state(state["torch_generator"])
-        self._smoothing_pool = state["smoothing_pool"]
+        pool = state["smoothing_pool"]
+        self._smoothing_pool = None if pool is None else pool.to(self.device)
         self._smoothing_next = int(state["smoothing_next"])
         for noise, noise_state in zip(self.noises, state["noises"], strict=True):
             noise.load_state_dict(noise_state)
+        self._refresh_acting()
 
     @classmethod
-    def from_state_dict(cls, state: dict[str, Any], n_envs: int | None = None) -> Agent:
+    def from_state_dict(
+        cls, state: dict[str, Any], n_envs: int | None = None, device: str | torch.device = "cpu"
+    ) -> Agent:
         """An agent rebuilt with the checkpoint's own configuration, then restored."""
         n = len(state["noises"]) if n_envs is None else n_envs
         config = TD3Config.from_dict(state["config"])
-        agent = cls(state["obs_dim"], state["n_lane_actions"], config, n_envs=n)
+        agent = cls(state["obs_dim"], state["n_lane_actions"], config, n_envs=n, device=device)
         agent.load_state_dict(state)
         return agent
 
@@ -516,10 +555,10 @@ class Agent:
             "obs_dim": self.obs_dim,
             "n_lane_actions": self.n_lane_actions,
             "hidden_sizes": list(self.config.hidden_sizes),
-            "actor": [p.clone() for p in actor],
+            "actor": _cpu_copy(actor),
         }
         if self.n_lane_actions > 1:
-            state["critic"] = [p[:1].clone() for p in critics]
+            state["critic"] = _cpu_copy([p[:1] for p in critics])
         return state
 
     def policy(self, averaged: bool = False) -> Policy:
@@ -529,6 +568,50 @@ class Agent:
     def _deployed(self, averaged: bool) -> tuple[Params, Params]:
         s = self.state
         return (s.actor_average, s.critics_average) if averaged else (s.actor, s.critics)
+
+
+def parse_device(name: str) -> torch.device | None:
+    """The device a name asks for (None: ``auto``); a name that is none of ``auto``, ``cpu``,
+    ``cuda`` or ``cuda:N`` is a `UsageError`."""
+    if name == "auto":
+        return None
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise UsageError(f"device {name!r} is not one of: auto, cpu, cuda, cuda:N") from exc
+    if device.type not in ("cpu", "cuda"):
+        raise UsageError(f"device {name!r} is not one of: auto, cpu, cuda, cuda:N")
+    return device
+
+
+def resolve_device(name: str) -> torch.device:
+    """Where the learner's networks go: ``auto`` (a CUDA GPU if torch sees one, else the CPU),
+    ``cpu``, ``cuda`` or ``cuda:N``; one torch cannot use here is a `UsageError`."""
+    device = parse_device(name)
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise UsageError(
+                f"device {name!r}: torch sees no CUDA GPU here (torch {torch.__version__}; "
+                "a CPU-only build, or no driver); use --device cpu or auto"
+            )
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise UsageError(f"device {name!r}: there are {torch.cuda.device_count()} GPUs")
+    return device
+
+
+def _cpu_copy(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Detached copies on the CPU (for checkpoints, policies and acting)."""
+    return [t.detach().to("cpu", copy=True) for t in tensors]
+
+
+def _cpu_state(state: dict[str, Any]) -> dict[str, Any]:
+    """An optimiser's state with every tensor copied to the CPU."""
+    return {
+        key: _cpu_copy(value) if isinstance(value, list) else value.detach().to("cpu", copy=True)
+        for key, value in state.items()
+    }
 
 
 @contextmanager

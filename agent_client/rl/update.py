@@ -137,7 +137,7 @@ def critic_step(state: LearnerState, batch: Tensors, hyper: Hyper) -> torch.Tens
     grads = list(grads)
     norm = clip_grad_norm_(grads, hyper.max_grad_norm)
     adam_(state.critics, grads, state.critic_adam, hyper.critic_lr)
-    zero = torch.zeros(())
+    zero = loss.new_zeros(())
     return torch.stack([loss, q_mean, target.mean(), norm, zero, zero, zero])
 
 

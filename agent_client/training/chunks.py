@@ -180,6 +180,7 @@ class ChunkCollector:
             self._started = False
             self._pending.clear()
             self._stale.clear()
+            self._policy = None  # workers started again get the policy with their first ask
             self.workers.close()
 
     # ----------------------------------------------------------------------- helpers

@@ -27,12 +27,22 @@ from typing import TYPE_CHECKING, Any
 
 from agent_client.defaults import DEFAULT_SCENARIO, TRAINING_EVALUATION_SEED, TRAINING_SEED
 from agent_client.errors import UsageError
-from agent_client.rl.td3 import TD3Config
+from agent_client.rl.td3 import TD3Config, parse_device
 
 SAMPLING_KINDS = ("auto", "local", "processes", "ray")
 """Where training episodes run: lock-step in the learner's process, or sampling workers
 (`agent_client.training.chunks`) in processes of their own or on Ray; auto chooses between the
 first two (`TrainConfig.sampling_on`)."""
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity: a container's or taskset's limit,
+    not the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity on this platform (macOS)
+        return os.cpu_count() or 1
+
 
 if TYPE_CHECKING:
     from agent_client.rl.rewards import RewardFn
@@ -166,6 +176,10 @@ class TrainConfig:
     policy that does not jump with every gradient step."""
     torch_threads: int = 1
     """torch intra-op threads (1 is fastest for small networks on a shared CPU)."""
+    device: str = "cpu"
+    """Where the networks learn: cpu, cuda, cuda:N, or auto (a CUDA GPU if torch sees one, else
+    the CPU). Acting, the replay buffer and the sampling workers stay on the CPU. Not auto by
+    default: the GPU path has not been measured yet (docs/learner.md, "On a GPU")."""
     sampling: str = "auto"
     """Where training episodes run: local (this process steps every server at once, the learner
     updating while they simulate), processes (one sampling process per server, each with a
@@ -205,6 +219,11 @@ class TrainConfig:
             raise UsageError(
                 f"simulators {self.simulators} needs sampling workers to start them beside: "
                 "--sampling processes (on this machine) or --sampling ray"
+            )
+        if self.egos > 1 and self.simulators:
+            raise UsageError(
+                f"egos {self.egos} with simulators {self.simulators}: the sampling workers that "
+                "start simulators drive one ego each (train many egos on --server addresses)"
             )
         if self.egos > 1 and self.sampling not in ("auto", "local"):
             raise UsageError(
@@ -252,6 +271,7 @@ class TrainConfig:
             if getattr(self, name) < 1:
                 raise UsageError(f"{name} must be at least 1, got {getattr(self, name)}")
         self._check_sampling()
+        parse_device(self.device)  # a typo now, not when the trainer starts
         if self.eval_budget is not None and not self.eval_budget > 0:
             raise UsageError(f"eval_budget must be > 0 (or None: no limit), got {self.eval_budget}")
         if self.max_minutes is not None and not self.max_minutes > 0:
@@ -272,7 +292,7 @@ class TrainConfig:
             return self.sampling
         if self.simulators:
             return "processes"
-        cores = (os.cpu_count() or 1) if cores is None else cores
+        cores = usable_cores() if cores is None else cores
         free = self.eval_every == 0 or evaluation_servers > 0
         return "processes" if self.egos == 1 and free and cores >= servers + 1 else "local"
 

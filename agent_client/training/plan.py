@@ -60,7 +60,8 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
     }[trainer.sampling]
     why = " (auto)" if config.sampling == "auto" else ""
     return [
-        f"training {config.learner.algo.upper()} on {', '.join(config.scenarios)} (reward "
+        f"training {config.learner.algo.upper()} (on {trainer.device}) on "
+        f"{', '.join(config.scenarios)} (reward "
         f"{config.reward}, {trainer.features.name} features, {lanes}{egos}) on {where_trained}",
         f"  sampling: {trainer.sampling}{why}: {sampling}",
         f"  evaluations: {evaluations}",

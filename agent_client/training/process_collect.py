@@ -104,11 +104,24 @@ class ProcessWorkers:
         return content  # type: ignore[no-any-return]
 
     def close(self) -> None:
-        """Ask every worker to stop, wait `CLOSE_GRACE_S` for them together, kill the rest."""
+        """Ask every worker to stop and wait `CLOSE_GRACE_S` for them together, reading (and
+        dropping) the chunks they were sampling meanwhile, so that none blocks on a full pipe
+        before its goodbye; kill the rest."""
         for pipe in self.pipes:
             with contextlib.suppress(OSError):
                 pipe.send(("close",))
         deadline = time.monotonic() + CLOSE_GRACE_S
+        open_pipes = list(self.pipes)
+        while open_pipes and any(p.is_alive() for p in self.processes):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            for ready in wait(open_pipes, min(remaining, LEARNER_CHECK_S)):
+                assert isinstance(ready, Connection)
+                try:
+                    ready.recv()
+                except (EOFError, OSError):  # it has exited: nothing more to read
+                    open_pipes.remove(ready)
         for process in self.processes:
             process.join(max(0.0, deadline - time.monotonic()))
             if process.is_alive():
@@ -146,7 +159,14 @@ class ProcessWorkers:
 
 def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_seed: int) -> None:
     """A worker process's life: answer the learner's requests until it says close or is gone."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the learner's: it closes us
+    # Ctrl-C and a SIGTERM to the learner's process group are the learner's: it closes us, and
+    # we stop by ourselves when it is gone. A group of our own (in its session: with the
+    # kernel's autogroup scheduling a session of its own would be a scheduling group of its
+    # own, as the evaluation workers found), SIGTERM left as it is (multiprocessing stops a
+    # daemonic worker with it at the learner's exit).
+    with contextlib.suppress(OSError):
+        os.setpgid(0, 0)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     parent = os.getppid()
     try:
         worker = SamplingWorker(spec, index, stride, first_seed)

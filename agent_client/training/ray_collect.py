@@ -21,6 +21,7 @@ from agent_client.training.sampler import (
     SamplingWorker,
     Settings,
     WorkerSpec,
+    policy_arrays,
 )
 from protocol.transport.security import CLIENT_SECRET_ENV, SERVER_KEY_ENV
 
@@ -61,7 +62,7 @@ class RayWorkers:
         self.actors = [actor.remote(spec, i, n, first_seed) for i, spec in enumerate(specs)]
 
     def share(self, policy_state: dict[str, Any]) -> Any:
-        return self._ray.put(policy_state)
+        return self._ray.put(policy_arrays(policy_state))  # numpy: a worker needs no torch
 
     def ask(self, index: int, n_steps: int, settings: Settings, policy: Any | None) -> None:
         self._refs[index] = self.actors[index].sample.remote(n_steps, settings, policy)

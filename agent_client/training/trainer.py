@@ -1,9 +1,12 @@
 """The training loop of the paper's Fig. 1: read the state, score the last action, learn, act.
 
-One learner, one or more remote simulators. Each iteration sends every server its next command
-(and the evaluation servers theirs), runs the gradient updates due while the simulators compute,
-then receives: the replies become transitions in one replay buffer. Updating while the
-simulator steps is what lets the learner keep up with it (docs/learner.md, "Speed").
+One learner, one or more remote simulators. Each iteration has its collector send every server
+its next command, runs the gradient updates due while the simulators compute, then receives:
+the replies become transitions in one replay buffer. Updating while the simulator steps is what
+lets the learner keep up with it (docs/learner.md, "Speed"). Who steps the servers is the
+collector's business: this process in lock-step (`collect`), or a sampling worker per server in
+a process of its own or on Ray (`chunks`). When to evaluate is the `EvaluationSchedule`'s
+(`schedule`); what an evaluation is judged against, the `Reference`'s (`reference`).
 
 With ``egos`` > 1 every server runs simulations of that many egos, all driven by the one shared
 policy, every ego's steps feeding the one buffer (`agent_client.training.multi_collect`); the
@@ -17,7 +20,8 @@ goes on: an evaluation is read at the next multiple of `eval_every`, where the n
 one that could complete convergence runs while training waits, so the run (episodes, verdicts, the
 converged episode) is the one `eval_while_training` off gives, where every evaluation blocks.
 Without them they run inline on the training servers. Checkpoints make a run resumable; with one
-training server the same seed and configuration give the same run.
+training server the same seed and configuration give the same run (a sampling worker's
+exploration noise starts afresh on a resumed one).
 """
 
 from __future__ import annotations
@@ -27,7 +31,6 @@ import json
 import math
 import signal
 import time
-from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -53,14 +56,14 @@ from agent_client.errors import (
     UsageError,
 )
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_summary
-from agent_client.evaluation.targets import FailureScreen, ceiling_target, judge
+from agent_client.evaluation.targets import FailureScreen
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LANE_COMMANDS
 from agent_client.rl.policy import Policy
 from agent_client.rl.replay import ReplayBuffer
 from agent_client.rl.rewards import TRAFFIC_REWARDS, q_upper_bound
-from agent_client.rl.td3 import Agent
+from agent_client.rl.td3 import Agent, resolve_device
 from agent_client.training.chunks import ChunkCollector, chunk_collector
 from agent_client.training.collect import (
     EPISODE_FAILURES,
@@ -86,7 +89,9 @@ from agent_client.training.progress import (
     Reporter,
     evaluation_line,
 )
+from agent_client.training.reference import Reference
 from agent_client.training.run_log import RunLog
+from agent_client.training.schedule import EvaluationSchedule
 from protocol.messages import ROAD_RANGE, Observation, Road
 from protocol.version import ROAD_VERSION
 
@@ -180,9 +185,11 @@ class Trainer:
         self.sampling = config.sampling_on(n_envs, len(self.eval_servers))
         """Where training episodes run: local, processes or ray (auto resolved)."""
         n_envs *= config.egos  # one exploration noise process per ego slot
+        self.device = resolve_device(config.device)
         self.agent = Agent(
-            self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs
-        )
+            self.features.dim, self.lanes.n_choices, config.learner, config.seed, n_envs=n_envs,
+            device=self.device,
+        )  # fmt: skip
         self.buffer = ReplayBuffer(
             config.learner.buffer_size, self.features.dim, config.seed, self.lanes.n_choices
         )
@@ -193,8 +200,12 @@ class Trainer:
             config.reference if config.reference != "auto" else "idm+mobil" if routed else "idm"
         )
         """The driver evaluations compare the policy with (`TrainConfig.reference`)."""
-        self.reference_figures: dict[str, dict[str, float]] = {}
-        """The reference's figures on each scenario's evaluation seeds."""
+        eval_seeds = [
+            config.eval_seed + i for i in range(config.eval_episodes * len(config.scenarios))
+        ]
+        self.figures = Reference(eval_seeds, self.env.scenario_for)
+        """The reference's figures on the evaluation seeds (a seed picks its scenario)."""
+        self.schedule = EvaluationSchedule(config)
         warmup = config.warmup_policy
         if warmup == "auto":
             warmup = "idm+mobil" if self.scale.residual else "random"
@@ -202,39 +213,7 @@ class Trainer:
         self.progress = Progress()
         self.profile = Profile()
         self.q_bound = q_upper_bound(config.reward, config.learner.gamma, **config.reward_params)
-        self.idm_eval: dict[str, float] | None = None
-        self.idm_speeds: list[float] = []
-        """IDM's average speed per evaluation seed: the same seeds' figure for a stopped one."""
-        self.idm_ceilings: list[float] | None = None
-        """IDM's leader-at-entry ceiling per evaluation seed: a bound on any driver's average
-        speed there (None where one is missing, or where IDM did not reach the end of the road
-        within the time limit: a drive cut short may average more than its leader's whole
-        trip)."""
-        # The leader-at-entry ceiling costs the server a run-on of up to ~100 ms at every
-        # episode end: only the evaluations, whose targets use it, ask for it.
-        reset_options = {"report_ceiling": False} if _offers(self.env, "report_ceiling") else {}
-        self.collector: LocalCollector | MultiEgoCollector | ChunkCollector
-        if config.egos > 1:  # one multi-ego simulation per server, in the envs' own sessions
-            links = [MultiEgoLink.sharing(env, config.egos) for env in self.vec.envs]
-            self.collector = MultiEgoCollector(
-                links, self.features, self.lanes, self.scale, self._choose_egos,
-                self._next_seed, self.agent.reset_noise, reset_options,
-            )  # fmt: skip
-        elif self.sampling != "local":  # a worker per server, in a process or on Ray
-            self.collector = chunk_collector(
-                config, self.vec, self.features, self.lanes, reset_options,
-                sampling=self.sampling, residual=self.scale.residual,
-                warmup_policy=self.warmup.policy,
-                policy_state=self.agent.policy_state_dict,
-                global_step=lambda: self.progress.global_step,
-                lane_epsilon=lambda: self.agent.lane_epsilon, next_seed=self._next_seed,
-                retry_for_s=self.retry_for_s, eval_servers=len(self.eval_servers),
-            )  # fmt: skip
-        else:
-            self.collector = LocalCollector(
-                self.vec.envs, self.features, self.lanes, self.scale, self._choose,
-                self._next_seed, self.agent.reset_noise, reset_options,
-            )  # fmt: skip
+        self.collector = self._make_collector()
         self._pairs = n_envs > 1 and config.learner.policy_delay == 2
         """With several servers the updates due each iteration run as TD3 pairs."""
         self._stop_requested = False
@@ -248,17 +227,41 @@ class Trainer:
         self._losses: list[float] = []
         self._actor_learned = False
         """The actor has had an update (a residual policy's waits for its burn-in)."""
-        self._evaluation_wanted = False
-        self._evaluation_due = False
-        """An evaluation is due but waits for the gate or for `eval_budget`."""
         self._failures_in_a_row = 0
-        self._recent_collisions: deque[bool] = deque(maxlen=max(config.eval_gate, 1))
         self._restored_evaluation: dict[str, Any] | None = None
         """A resumed run's evaluation that was under way when it stopped (`_running_evaluation`)."""
         self._pending: EvaluationJob | None = None
         """The evaluation running in the background (its verdict due at episode
         ``context["collect_at"]``; IDM's baseline before the first policy evaluation)."""
         self._started = time.monotonic()
+
+    def _make_collector(self) -> LocalCollector | MultiEgoCollector | ChunkCollector:
+        """Who steps the training servers (`self.sampling`): this process in lock-step (one
+        multi-ego simulation per server with ``egos`` > 1), or a sampling worker per server."""
+        config = self.config
+        # The leader-at-entry ceiling costs the server a run-on of up to ~100 ms at every
+        # episode end: only the evaluations, whose targets use it, ask for it.
+        reset_options = {"report_ceiling": False} if _offers(self.env, "report_ceiling") else {}
+        if config.egos > 1:  # one multi-ego simulation per server, in the envs' own sessions
+            links = [MultiEgoLink.sharing(env, config.egos) for env in self.vec.envs]
+            return MultiEgoCollector(
+                links, self.features, self.lanes, self.scale, self._choose_egos,
+                self._next_seed, self.agent.reset_noise, reset_options,
+            )  # fmt: skip
+        if self.sampling != "local":  # a worker per server, in a process or on Ray
+            return chunk_collector(
+                config, self.vec, self.features, self.lanes, reset_options,
+                sampling=self.sampling, residual=self.scale.residual,
+                warmup_policy=self.warmup.policy,
+                policy_state=self.agent.policy_state_dict,
+                global_step=lambda: self.progress.global_step,
+                lane_epsilon=lambda: self.agent.lane_epsilon, next_seed=self._next_seed,
+                retry_for_s=self.retry_for_s, eval_servers=len(self.eval_servers),
+            )  # fmt: skip
+        return LocalCollector(
+            self.vec.envs, self.features, self.lanes, self.scale, self._choose,
+            self._next_seed, self.agent.reset_noise, reset_options,
+        )  # fmt: skip
 
     def _lanes_and_routes(self) -> tuple[bool, bool]:
         """Whether lanes can be changed on some scenario (a road of several lanes), and
@@ -349,9 +352,9 @@ class Trainer:
     def _prepare(self, log: RunLog) -> None:
         """The reference's evaluation (on the evaluation servers, else the training ones), an
         evaluation a resumed run had under way, pre-training."""
-        if self.idm_eval is None and self.config.eval_every > 0:
+        if not self.figures.known and self.config.eval_every > 0:
             servers = len(self.eval_servers or self.vec.envs)
-            job = EvaluationJob("idm", self.reference, self._eval_seeds())
+            job = EvaluationJob("idm", self.reference, self.figures.seeds)
             name = f"the reference ({getattr(self.reference, 'name', 'a policy')})"
             if self._background():
                 self.say(f"evaluating {name} in the background ({servers} servers)")
@@ -359,7 +362,7 @@ class Trainer:
             else:
                 self.say(f"evaluating {name} on the evaluation seeds ({servers} servers)")
                 summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
-                self._set_idm_baseline(summaries)
+                self._book_reference(summaries)
             self.collector.drop_episodes()
         running = self._restored_evaluation
         if running is not None:  # it was under way when the run stopped
@@ -381,7 +384,13 @@ class Trainer:
         if due:
             first = not self.progress.updates
             if first:  # a wait of its own, said as such: no iteration after it pays it
-                self.say(f"learning begins at {self.progress.global_step} env steps")
+                loading = (
+                    "; loading the compiled update first (~4 s; ~15 s to compile it the first "
+                    "time on a machine)"
+                    if self.config.learner.compile
+                    else ""
+                )
+                self.say(f"learning begins at {self.progress.global_step} env steps{loading}")
             batches = [self.buffer.sample(batch_size) for _ in range(due)]
             actor = not self.scale.residual or self.progress.updates >= self.config.residual_burn_in
             self._losses += [m["critic_loss"] for m in agent.update_many(batches, actor)]
@@ -520,43 +529,15 @@ class Trainer:
         row = self._episode_row(slot)
         log.episode(row)
         self.reporter.episode(row)
-        self._recent_collisions.append(int(row["collisions"]) > 0)
         pending = None if self._interrupted else self._pending  # Ctrl-C: no more waiting
         if pending is not None and progress.episode >= pending.context.get("collect_at", math.inf):
             self._collect(log)  # before the next is due: its verdict decides when that one runs
-        every = self.config.eval_every
-        if progress.learning_episode is None and self._learning():
-            progress.learning_episode = progress.episode - 1  # it began during this one
-        learned = self._learned_for(every)
-        if every > 0 and progress.episode % every == 0 and learned and self._gate_open():
-            self._evaluation_due = True
-        if self._evaluation_due and self._gate_open() and self._within_budget():
-            self._evaluation_due, self._evaluation_wanted = False, True
-        if self._evaluation_wanted and not self._interrupted:
+        collided = int(row["collisions"]) > 0
+        learning = progress.global_step >= self.config.learner.learning_starts
+        if self.schedule.episode_ended(progress, collided, learning) and not self._interrupted:
             self._start_policy_evaluation(log)
         if progress.episode % self.config.checkpoint_every == 0:
             self._checkpoint()
-
-    def _learning(self) -> bool:
-        return self.progress.global_step >= self.config.learner.learning_starts
-
-    def _learned_for(self, episodes: int) -> bool:
-        """Whether learning began at least `episodes` episodes ago (an evaluation before would
-        judge the initial policy, or one a few hundred updates old)."""
-        began = self.progress.learning_episode
-        return began is not None and self.progress.episode - began >= episodes
-
-    def _within_budget(self) -> bool:
-        """Whether the wait that `eval_budget` sets after a failed evaluation is over (after a
-        pass there is none: a run of passes is what convergence needs, and spreading it out
-        would ask more of it than `converged_evals` in a row)."""
-        return self.progress.global_step >= self.progress.evaluation_resume_step
-
-    def _gate_open(self) -> bool:
-        """No collision in the last `eval_gate` training episodes."""
-        gate = self.config.eval_gate
-        recent = list(self._recent_collisions)[-gate:] if gate else []
-        return len(recent) >= gate and not any(recent)
 
     def _episode_row(self, slot: Slot) -> dict[str, Any]:
         summary = episode_summary(slot.episode)
@@ -608,31 +589,6 @@ class Trainer:
 
     # ----------------------------------------------------------------------- evaluation
 
-    def _eval_seeds(self) -> list[int]:
-        """`eval_episodes` seeds per scenario (a seed picks its scenario: `scenario_for`)."""
-        cfg = self.config
-        return [cfg.eval_seed + i for i in range(cfg.eval_episodes * len(cfg.scenarios))]
-
-    def _by_scenario(self, summaries: Sequence[EpisodeSummary]) -> dict[str, list[EpisodeSummary]]:
-        """Evaluation episodes grouped by the scenario of their seed (an episode's index is its
-        seed's in `_eval_seeds`; an insertion retry kept the scenario, not the seed)."""
-        seeds = self._eval_seeds()
-        groups: dict[str, list[EpisodeSummary]] = {}
-        for summary in summaries:
-            groups.setdefault(self.env.scenario_for(seeds[summary.episode]), []).append(summary)
-        return groups
-
-    def _targets(self, summaries: Sequence[EpisodeSummary]) -> tuple[dict[str, bool], str]:
-        """Which targets the evaluation meets against the reference's figures on the same seeds
-        (`agent_client.evaluation.targets.judge`), and what missed which."""
-        assert self.idm_eval is not None
-        scenarios = {
-            name: (aggregate(group), self.reference_figures[name])
-            for name, group in self._by_scenario(summaries).items()
-        }
-        reference = {**self.idm_eval, "average_speed": self._idm_speed_on(summaries)}
-        return judge(scenarios, (aggregate(summaries), reference))
-
     def _policy_state(self) -> dict[str, Any]:
         return self.agent.policy_state_dict(self.config.deploy_averaged)
 
@@ -640,24 +596,20 @@ class Trainer:
         """Evaluate the current policy: in the background, its verdict read where the next
         evaluation may be due, or now while training waits (inline, with `eval_while_training`
         off, or when a pass would complete convergence)."""
-        self._evaluation_wanted = False
         if self._pending is not None:  # IDM's baseline, or a verdict due at this episode
             self._collect(log)
-        progress, every = self.progress, self.config.eval_every
+        progress = self.progress
         context = {
             "episode": progress.episode,
             "global_step": progress.global_step,
             "trained": self._actor_trained(),
-            # The next episode at which another evaluation may be due: its verdict (and the
-            # budget's wait it sets) must be known there. One the gate or the budget held back
-            # started after a multiple of `eval_every`, and the next is due sooner.
-            "collect_at": (progress.episode // every + 1) * every,
+            "collect_at": self.schedule.started(progress),  # its verdict must be known there
         }
         self._evaluate(self._policy_job(self._policy_state(), context), log)
 
     def _evaluate(self, job: EvaluationJob, log: RunLog) -> None:
         """Start policy evaluation `job` in the background, or run and book it now."""
-        if self._background() and not self._could_converge():
+        if self._background() and not self.schedule.could_converge(self.progress):
             self._start_background(job)
             return
         summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
@@ -675,42 +627,22 @@ class Trainer:
         """The evaluation of policy `state` on the held-out seeds (`context`: the episode and
         the env step it was taken at, and where its verdict is due)."""
         driver = PolicyDriver(Policy.from_state_dict(state), self.features, self.scale, self.lanes)
-        seeds = self._eval_seeds()
-        screen = self._screen(len(seeds)) if self.config.eval_screen else None
+        screen = self._screen() if self.config.eval_screen else None
         context = {**context, "policy_state": state,
                    "evaluation_seconds_before": self.profile.evaluation_seconds}  # fmt: skip
         return EvaluationJob(
-            "policy", driver, seeds, context, stop_on_collision=True, screen=screen
+            "policy", driver, self.figures.seeds, context, stop_on_collision=True, screen=screen
         )
 
-    def _could_converge(self) -> bool:
-        """Whether a pass now would complete convergence (then training waits for it, so that
-        convergence is declared where a blocking evaluation would declare it)."""
-        progress = self.progress
-        return progress.converged_episode is None and (
-            progress.passed_in_a_row + 1 >= self.config.converged_evals
-        )
-
-    def _screen(self, seeds: int) -> FailureScreen | None:
-        """What lets an evaluation stop once it has certainly failed: the scenario's time limit
-        bounds an episode's steps, and on one lane IDM's ceilings bound every seed's speed."""
-        assert self.idm_eval is not None
+    def _screen(self) -> FailureScreen:
+        """What stops an evaluation that has certainly failed (`Reference.screen`): the
+        scenario's time limit bounds an episode's steps (the env's options, as the server has
+        them)."""
         options = self.env.scenario_options
-        figures, eval_seeds = self.reference_figures, self._eval_seeds()
-        routed = {  # where the reference's route made it change lanes: there it must arrive
-            index
-            for index, seed in enumerate(eval_seeds[:seeds])
-            if figures.get(self.env.scenario_for(seed), {}).get("route_lanes", 0) > 0
-        }
         limit = _number(options.get("max_episode_time"))
-        interval = _number(options.get("decision_interval"))  # the env's, as the server has it
+        interval = _number(options.get("decision_interval"))
         max_steps = math.ceil(limit / interval) + 10 if limit and interval else None
-        ceilings = self.idm_ceilings
-        bounds = ceilings if self._one_lane and ceilings and len(ceilings) == seeds else None
-        return FailureScreen(
-            seeds, self.idm_eval["average_speed"], max_steps, bounds, routed,
-            ceiling_target(self.idm_eval),
-        )  # fmt: skip
+        return self.figures.screen(max_steps, self._one_lane)
 
     def _background(self) -> bool:
         """Whether evaluations run in the background (on evaluation servers of their own)."""
@@ -769,29 +701,19 @@ class Trainer:
             if job.name == "idm":
                 self.profile.baseline_evaluation += waited
 
-    def _set_idm_baseline(self, summaries: list[EpisodeSummary]) -> None:
-        """Keep the reference's figures: over all its episodes, per scenario, per seed."""
-        self.idm_eval = aggregate(summaries)
-        self.reference_figures = {
-            name: aggregate(group) for name, group in self._by_scenario(summaries).items()
-        }
-        ceilings = [s.ceiling_speed for s in summaries]
-        self.idm_speeds = [s.average_speed for s in summaries]
-        self.idm_ceilings = [c for c in ceilings if c is not None]
-        arrived = all(s.reason == "end_of_road" for s in summaries)
-        if len(self.idm_ceilings) != len(ceilings) or not arrived:
-            self.idm_ceilings = None
-        (self.out / "idm_eval.json").write_text(json.dumps(self.idm_eval, indent=2))
+    def _book_reference(self, summaries: list[EpisodeSummary]) -> None:
+        """Keep the reference's figures on the evaluation seeds (and in idm_eval.json)."""
+        overall = self.figures.book(summaries)
+        (self.out / "idm_eval.json").write_text(json.dumps(overall, indent=2))
 
     def _evaluation_done(
         self, job: EvaluationJob, summaries: list[EpisodeSummary], log: RunLog
     ) -> None:
         if job.name == "idm":
-            self._set_idm_baseline(summaries)
+            self._book_reference(summaries)
             return
-        assert self.idm_eval is not None
         result = aggregate(summaries)
-        met, failed_scenarios = self._targets(summaries)
+        met, failed_scenarios = self.figures.targets(summaries)
         if job.stopped is not None:  # failed for certain, whatever the partial figures say
             met[job.stopped] = False
         complete = len(summaries) == len(job.seeds)
@@ -803,11 +725,7 @@ class Trainer:
         progress.evaluation_steps += steps
         progress.wall_time = time.monotonic() - self._started
         passes = complete and all(met.values()) and job.context.get("trained", True)
-        progress.passed_in_a_row = progress.passed_in_a_row + 1 if passes else 0
-        budget = self.config.eval_budget
-        if budget is not None and not passes:  # wait for training to outweigh what it cost
-            started_at = job.context["global_step"]  # the same whether training waited or not
-            progress.evaluation_resume_step = started_at + math.ceil(steps / budget)
+        self.schedule.judged(progress, passes, steps, job.context["global_step"])
         ratio = result["speed_ratio_to_ceiling"]  # NaN where no ceiling is reported (the ring)
         score = sum(met.values()) + (ratio if math.isfinite(ratio) else 0.0)
         if complete and score >= progress.best_score:  # a stopped one's figures are partial
@@ -818,7 +736,7 @@ class Trainer:
             "global_step": job.context["global_step"],
             "wall_time": progress.wall_time,
             **result,
-            "speed_ratio_to_idm": result["average_speed"] / self._idm_speed_on(summaries),
+            "speed_ratio_to_idm": result["average_speed"] / self.figures.speed_on(summaries),
             **{f"target_{name}": passed for name, passed in met.items()},
             "passed_in_a_row": progress.passed_in_a_row,
             "trained": job.context.get("trained", True),
@@ -834,20 +752,9 @@ class Trainer:
         self.say(evaluation_line(evaluation))
         self._check_convergence()
 
-    def _idm_speed_on(self, summaries: Sequence[EpisodeSummary]) -> float:
-        """IDM's average speed on the seeds these episodes drove (all of them unless an
-        evaluation stopped early, or IDM's per-seed figures are unknown)."""
-        assert self.idm_eval is not None
-        indices = [s.episode for s in summaries]
-        if len(indices) == len(self.idm_speeds) or not all(
-            0 <= i < len(self.idm_speeds) for i in indices
-        ):
-            return self.idm_eval["average_speed"]
-        return float(np.mean([self.idm_speeds[i] for i in indices]))
-
     def _check_convergence(self) -> None:
         progress = self.progress
-        if progress.passed_in_a_row < self.config.converged_evals:
+        if not self.schedule.converged(progress):
             return
         if progress.converged_episode is None:
             progress.converged_episode = progress.episode
@@ -872,10 +779,7 @@ class Trainer:
             "buffer": self.buffer.state_dict(),
             "rng": _plain(self.rng.bit_generator.state),
             "progress": _plain(dataclasses.asdict(self.progress)),
-            "idm_eval": self.idm_eval,
-            "reference_figures": self.reference_figures,
-            "idm_speeds": self.idm_speeds,
-            "idm_ceilings": self.idm_ceilings,
+            **self.figures.state_dict(),
             "config": self.config.to_dict(),
             "running_evaluation": self._running_evaluation(),
         }
@@ -909,14 +813,9 @@ class Trainer:
             raise UsageError(f"{self.out}: cannot resume this run: {exc}") from exc
         self.rng.bit_generator.state = state["rng"]
         self.progress = Progress(**state["progress"])
-        self.idm_eval = state["idm_eval"]
-        self.reference_figures = state.get("reference_figures") or (
-            {self.config.scenarios[0]: self.idm_eval} if self.idm_eval else {}
-        )
-        self.idm_speeds = state.get("idm_speeds") or []
-        self.idm_ceilings = state.get("idm_ceilings")
+        self.figures.load_state_dict(state, self.config.scenarios[0])
         running = state.get("running_evaluation")
-        if running is not None and self.idm_eval is not None and self.config.eval_every > 0:
+        if running is not None and self.figures.known and self.config.eval_every > 0:
             self._restored_evaluation = running
         self.say(
             f"resumed {self.out} at episode {self.progress.episode}, "

@@ -189,3 +189,24 @@ def test_the_trainer_samples_in_processes_over_a_pool(scenario_cache: Path, tmp_
         first, second = RemoteEnv(pool.address, "cf"), RemoteEnv(pool.address, "cf")
         first.close()
         second.close()
+
+
+def test_one_server_and_one_seed_give_the_same_run_twice(
+    sumo: RunningServer, tmp_path: Path
+) -> None:
+    """One sampling process asks for a chunk only after the learner has taken the last: the
+    policy copies it acts with, and so the run, follow from the seed alone."""
+    from agent_client.training.run_log import read_rows
+
+    def episodes(name: str) -> list[tuple[str, ...]]:
+        trainer = Trainer(processes_config(episodes=6), sumo.address, tmp_path / name)
+        try:
+            trainer.run()
+        finally:
+            trainer.close()
+        rows = read_rows(tmp_path / name / "episodes.csv")
+        return [(r["global_step"], r["steps"], r["total_reward"], r["q_mean"]) for r in rows]
+
+    first = episodes("first")
+    assert len(first) == 6
+    assert episodes("second") == first

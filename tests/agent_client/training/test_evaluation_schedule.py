@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from agent_client.errors import UsageError
-from agent_client.training import trainer as trainer_module
+from agent_client.training import reference as reference_module
 from agent_client.training.config import TrainConfig, apply_overrides
 from agent_client.training.eval_pool import EvaluationPool
 from agent_client.training.run_log import read_rows
@@ -185,7 +185,7 @@ def test_a_residual_policys_passes_in_its_burn_in_do_not_count(
     nothing of what was learned, and does not count towards convergence (every target is met
     here, whatever the figures)."""
     met = {"no_collisions": True, "as_fast_as_idm": True}
-    monkeypatch.setattr(trainer_module, "judge", lambda scenarios, whole: (dict(met), ""))
+    monkeypatch.setattr(reference_module, "judge", lambda scenarios, whole: (dict(met), ""))
     waiting = train(fake_server.address, tmp_path / "burn", eval_budget=None,
                     residual="idm+mobil", residual_burn_in=10**6)  # fmt: skip
     rows = read_rows(tmp_path / "burn" / "evaluations.csv")

@@ -15,6 +15,7 @@ def trainer_for(config: TrainConfig, sampling: str = "processes") -> Any:
     return SimpleNamespace(
         config=config,
         sampling=sampling,
+        device="cpu",
         agent=SimpleNamespace(n_lane_actions=3),
         vec=SimpleNamespace(envs=[object(), object()]),
         reference=SimpleNamespace(name="idm+mobil"),
@@ -26,7 +27,7 @@ def trainer_for(config: TrainConfig, sampling: str = "processes") -> Any:
 def test_the_plan_names_the_run_its_targets_and_where_it_stops() -> None:
     config = TrainConfig(scenario="cflc", stop_when_converged=True)
     text = "\n".join(plan_lines(trainer_for(config), Path("runs/x")))
-    assert "training TD3 on cflc" in text and "lane changes learned" in text
+    assert "training TD3 (on cpu) on cflc" in text and "lane changes learned" in text
     assert "as fast as the reference (idm+mobil)" in text
     assert "3 evaluations in a row" in text and "at most 300 episodes" in text
     assert "runs/x" in text and "over the whole evaluation" not in text

@@ -1,0 +1,130 @@
+"""`ChunkCollector`'s schedule over sampling workers, with workers faked in this process: chunks
+asked of idle workers only, policy copies sent when due, answers from before a drop discarded,
+failures named, restarted workers given the policy, servers handed back."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pytest
+
+from agent_client.training.chunks import ChunkCollector
+from agent_client.training.collect import Collected, Slot, Transition
+from agent_client.training.sampler import Chunk, SamplingFailed, Settings
+from tests.integration.test_ray_sampling import spec
+
+
+def transition(value: float) -> Transition:
+    x = np.full(2, value, np.float32)
+    mask = np.ones(1, bool)
+    return Transition(x, value, 0, value, x, False, mask, mask)
+
+
+@dataclass
+class FakeWorkers:
+    """Workers that answer at once: `steps` transitions per chunk, numbered by worker."""
+
+    steps: int = 3
+    asked: list[tuple[int, Any]] = field(default_factory=list)
+    """(worker, policy sent) per ask."""
+    answers: dict[int, list[Chunk | str]] = field(default_factory=dict)
+    started: int = 0
+    closed: int = 0
+    drops: list[int] = field(default_factory=list)
+
+    def start(self, specs: Sequence[Any], first_seed: int) -> None:
+        self.started += 1
+
+    def share(self, policy_state: dict[str, Any]) -> Any:
+        return dict(policy_state)
+
+    def ask(self, index: int, n_steps: int, settings: Settings, policy: Any | None) -> None:
+        self.asked.append((index, policy))
+        chunk = Chunk(transitions=[transition(index) for _ in range(self.steps)])
+        self.answers.setdefault(index, []).append(chunk)
+
+    def drop_episodes(self, index: int) -> None:
+        self.drops.append(index)
+
+    def wait(self, indices: Sequence[int], timeout_s: float) -> list[int]:
+        return [i for i in indices if self.answers.get(i)]
+
+    def answer(self, index: int) -> Chunk:
+        answer = self.answers[index].pop(0)
+        if isinstance(answer, str):
+            raise SamplingFailed(answer)
+        return answer
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def collector(workers: FakeWorkers, n: int = 2, sync_every: int = 10) -> ChunkCollector:
+    policy = {"version": 0}
+    return ChunkCollector(
+        workers, [spec(f"tcp://127.0.0.1:{5555 + i}") for i in range(n)], lambda: policy,
+        lambda: Settings(True), lambda: 100, chunk_steps=3, sync_every=sync_every,
+    )  # fmt: skip
+
+
+def test_each_idle_worker_is_asked_once_with_the_policy_when_it_is_due() -> None:
+    workers = FakeWorkers()
+    chunks = collector(workers, sync_every=10)
+    chunks.send()
+    assert [(i, p is not None) for i, p in workers.asked] == [(0, True), (1, True)]
+    assert len(chunks.receive().transitions) == 6
+    chunks.send()  # 6 of 10 transitions since the copy: none sent
+    assert [p is not None for _, p in workers.asked[2:]] == [False, False]
+    chunks.receive()
+    chunks.send()  # 12 since: a fresh copy to each
+    assert [p is not None for _, p in workers.asked[4:]] == [True, True]
+
+
+def test_answers_asked_for_before_a_drop_are_discarded_even_failed_ones() -> None:
+    workers = FakeWorkers()
+    chunks = collector(workers)
+    chunks.send()
+    workers.answers[1] = ["its server went away"]  # what it was sampling when dropped
+    chunks.drop_episodes()
+    assert workers.drops == [0, 1]
+    assert chunks.receive().transitions == []  # both answers were from before the drop
+    chunks.send()
+    assert len(chunks.receive().transitions) == 6
+
+
+def test_a_failed_worker_is_named_with_its_server() -> None:
+    workers = FakeWorkers()
+    chunks = collector(workers)
+    chunks.send()
+    workers.answers[1] = ["its process exited (exit code -9)"]
+    with pytest.raises(SamplingFailed, match=r"worker 1 \(tcp://127.0.0.1:5556\) failed: .*-9"):
+        chunks.receive()
+
+
+def test_workers_started_again_after_a_release_get_the_policy_first() -> None:
+    workers = FakeWorkers()
+    chunks = collector(workers)
+    chunks.send()
+    chunks.receive()
+    chunks.release(timeout_s=1.0)  # the run's end: no server to take back here
+    assert workers.closed == 1
+    chunks.send()  # a second run
+    assert workers.started == 2
+    assert [p is not None for _, p in workers.asked[-2:]] == [True, True]
+
+
+def test_finished_episodes_keep_where_they_ended_among_the_transitions() -> None:
+    first = Chunk(transitions=[transition(0)] * 5, finished=[slot(ended_at=2)], reconnects=1)
+    second = Chunk(transitions=[transition(1)] * 4, finished=[slot(ended_at=None)])
+    collected = Collected()
+    collected.extend(first)
+    collected.extend(second)
+    assert [s.ended_at for s in collected.finished] == [2, 9]
+    assert len(collected.transitions) == 9 and collected.reconnects == 1
+
+
+def slot(ended_at: int | None) -> Slot:
+    return Slot(0, None, np.zeros(2), np.ones(1, bool), None, ended_at=ended_at)  # type: ignore[arg-type]
