@@ -10,8 +10,9 @@ On one ``sim-server --pool N`` (SUMO, `cf` by default) and, for the hop's cost, 
 * **lock-step**: one `RemoteVectorEnv` over the pool's address N times;
 * **training**: ``agent-client train``'s learner over the pool's address N times, evaluations
   off, with each ``--sampling`` kind asked for: ``local`` (lock-step in the learner's process)
-  and ``processes`` (a sampling process per session while the learner updates) by default
-  (issue 35's target: >= 0.6x the independent drivers).
+  and ``processes`` (a sampling process per session while the learner updates) by default,
+  timed once learning runs (after the warm-up and the compiled update's load: `scaling.training`;
+  issue 35's target: >= 0.6x the independent drivers).
 
     python benchmarks/pool.py --pool 2 --seconds 30
 """

@@ -1,16 +1,19 @@
-"""Many simulators, one learner: environment steps/s and learner updates/s for N = 1, 2, 4.
+"""Many simulators, one learner: environment steps/s and learner updates/s for N servers.
 
 One ``sim-server --workers MAX`` (SUMO, `cf` by default) on free loopback ports, then for each N:
 
 * **stepping**: `RemoteVectorEnv` over N servers driven by a fixed action for `--seconds`
   (what the simulators deliver to a learner that does nothing else);
-* **training**: the recommended DDPG configuration (learning from step 500) over the same N
-  servers for `--seconds` (its updates per environment step are the learner's real load).
+* **training**: the recommended learner (learning from step 500) over the same N servers for
+  `--seconds` of learning, timed from the first episode end after the compiled update has
+  loaded (said on the screen; its updates per environment step are the learner's real load),
+  once per `--sampling` kind and `--device`.
 
 Prints a table with the speed-ups over N = 1 and writes JSON. On a machine with C cores the
 simulators and the learner share them, so the curve flattens once N + 1 processes outnumber C.
 
     python benchmarks/scaling.py --counts 1 2 4 --seconds 60
+    python benchmarks/scaling.py --counts 1 2 4 8 14 --sampling local processes --device cpu cuda
 """
 
 from __future__ import annotations
@@ -67,45 +70,69 @@ def stepping(addresses: list[str], scenario: str, seconds: float) -> dict[str, f
 
 
 class StopAfter(QuietReporter):
-    """Requests a stop once the time budget is spent (checked after every episode)."""
+    """Marks when learning runs (the first episode end after the compiled update has loaded)
+    and requests a stop `seconds` later (checked after every episode); says the one-time
+    wait as it comes."""
 
     def __init__(self, seconds: float) -> None:
-        self.end = time.monotonic() + seconds
+        self.seconds = seconds
         self.trainer: Trainer | None = None
+        self.learning_from: tuple[float, int, int] | None = None
+        """(time, env steps, updates) at the first episode end with updates behind it."""
+
+    def message(self, text: str) -> None:
+        if text.startswith(("learning begins", "the compiled update")):
+            print(f"   {text}", flush=True)
 
     def episode(self, row: dict[str, Any]) -> None:
-        if time.monotonic() > self.end and self.trainer is not None:
-            self.trainer.request_stop()
+        trainer, now = self.trainer, time.monotonic()
+        if trainer is None or trainer.agent.n_updates == 0:
+            return
+        if self.learning_from is None:
+            self.learning_from = (now, trainer.progress.global_step, trainer.agent.n_updates)
+        elif now - self.learning_from[0] > self.seconds:
+            trainer.request_stop()
 
 
 def training(
-    addresses: list[str], scenario: str, seconds: float, sampling: str = "local"
+    addresses: list[str],
+    scenario: str,
+    seconds: float,
+    sampling: str = "local",
+    device: str = "cpu",
 ) -> dict[str, float]:
+    """The learner over `addresses` for `seconds` of learning (after the warm-up and the
+    compiled update's load, which are not timed): env steps/s and updates/s."""
     config = apply_overrides(
         TrainConfig(),
         {
             "scenario": scenario,
             "sampling": sampling,
+            "device": device,
             "episodes": 100_000,
             "eval_every": 0,
             "checkpoint_every": 1000,
             "learner": {"learning_starts": 500},
-        },  # mostly steady-state learning within the budget
+        },
     )
     reporter = StopAfter(seconds)
     with tempfile.TemporaryDirectory() as out:
         trainer = Trainer(config, addresses, Path(out), reporter=reporter)
         reporter.trainer = trainer
         try:
-            started = time.monotonic()
             progress = trainer.run()
-            elapsed = time.monotonic() - started
+            ended = time.monotonic()
         finally:
             trainer.close()
+    if reporter.learning_from is None:
+        raise SystemExit(f"{sampling}/{device}: no episode ended after learning began")
+    began, steps, updates = reporter.learning_from
     return {
-        "train_env_steps_per_s": progress.global_step / elapsed,
-        "updates_per_s": trainer.agent.n_updates / elapsed,
+        "train_env_steps_per_s": (progress.global_step - steps) / (ended - began),
+        "updates_per_s": (trainer.agent.n_updates - updates) / (ended - began),
         "episodes": progress.episode,
+        "sampling": trainer.sampling,
+        "device": str(trainer.device),
     }
 
 
@@ -115,6 +142,12 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=60.0, help="per measurement")
     parser.add_argument("--scenario", default="cf")
     parser.add_argument("--backend", default="sumo")
+    parser.add_argument(
+        "--sampling", nargs="+", default=["local", "processes"], help="training's sampling kinds"
+    )
+    parser.add_argument(
+        "--device", nargs="+", default=["cpu"], help="the learner's devices (cpu, cuda, ...)"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/scaling.json")
     args = parser.parse_args()
 
@@ -124,29 +157,34 @@ def main() -> int:
         for count in args.counts:
             row: dict[str, Any] = {"servers": count}
             row.update(stepping(addresses[:count], args.scenario, args.seconds))
-            row.update(training(addresses[:count], args.scenario, args.seconds))
+            print(f"N={count}: stepping {row['env_steps_per_s']:7.0f} steps/s", flush=True)
+            for sampling in args.sampling:
+                for device in args.device:
+                    trained = training(
+                        addresses[:count], args.scenario, args.seconds, sampling, device
+                    )
+                    row[f"training/{sampling}/{device}"] = trained
+                    print(
+                        f"N={count}, {sampling}, {device}: training "
+                        f"{trained['train_env_steps_per_s']:6.0f} steps/s, "
+                        f"{trained['updates_per_s']:6.0f} updates/s",
+                        flush=True,
+                    )
             rows.append(row)
-            print(
-                f"N={count}: stepping {row['env_steps_per_s']:7.0f} steps/s | training "
-                f"{row['train_env_steps_per_s']:6.0f} steps/s, {row['updates_per_s']:6.0f} "
-                "updates/s",
-                flush=True,
-            )
     finally:
         process.send_signal(signal.SIGTERM)
         process.wait(timeout=60)
-    base = rows[0]
-    print(f"\n{args.backend}/{args.scenario}, {os.cpu_count()} cores, {platform.node()}:")
-    print("| servers | stepping steps/s | x | training steps/s | x | updates/s |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    kinds = [f"{s}/{d}" for s in args.sampling for d in args.device]
+    print(f"\n{args.backend}/{args.scenario}, {os.cpu_count()} cores, {platform.node()}, "
+          "training after the warm-up and the compiled update's load:")  # fmt: skip
+    print("| servers | stepping steps/s | " + " | ".join(f"training {k}: steps/s (x stepping)"
+                                                          for k in kinds) + " |")  # fmt: skip
+    print("| --- | --- |" + " --- |" * len(kinds))
     for row in rows:
-        print(
-            f"| {row['servers']} | {row['env_steps_per_s']:.0f} | "
-            f"{row['env_steps_per_s'] / base['env_steps_per_s']:.2f} | "
-            f"{row['train_env_steps_per_s']:.0f} | "
-            f"{row['train_env_steps_per_s'] / base['train_env_steps_per_s']:.2f} | "
-            f"{row['updates_per_s']:.0f} |"
-        )
+        rate = row["env_steps_per_s"]
+        trained = [row[f"training/{kind}"]["train_env_steps_per_s"] for kind in kinds]
+        cells = [f"{value:.0f} ({value / rate:.2f})" for value in trained]
+        print(f"| {row['servers']} | {rate:.0f} | " + " | ".join(cells) + " |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
         json.dumps({"cores": os.cpu_count(), "scenario": args.scenario, "rows": rows}, indent=2)
