@@ -21,11 +21,12 @@ from agent_client.rl.greedy import NumpyActor
 from agent_client.rl.td3 import Agent, TD3Config
 from agent_client.training.chunks import ChunkCollector
 from agent_client.training.collect import LocalCollector, Slot, Transition
-from agent_client.training.config import TrainConfig, apply_overrides
+from agent_client.training.config import TrainConfig
 from agent_client.training.process_collect import ProcessWorkers
 from agent_client.training.sampler import SamplingFailed, Settings, policy_arrays
 from agent_client.training.trainer import Trainer
 from tests.conftest import RunningServer, sim_server
+from tests.integration.test_ray_sampling import ray_config
 from tests.integration.test_ray_sampling import spec as worker_spec
 from tests.integration.test_workers import alive
 
@@ -139,17 +140,8 @@ def test_a_worker_that_cannot_take_its_server_says_why(sumo: RunningServer) -> N
 
 
 def processes_config(**overrides: object) -> TrainConfig:
-    settings = {
-        "episodes": 8,
-        "eval_every": 0,
-        "sampling": "processes",
-        "sampling_chunk": 32,
-        "policy_sync_every": 100,
-        "scenario_options": {"max_episode_time": 5.0},
-        "learner": {"learning_starts": 200, "compile": False, "batch_size": 64},
-        **overrides,
-    }
-    return apply_overrides(TrainConfig(), settings)
+    """The Ray tests' short run, sampled in processes."""
+    return ray_config(**{"sampling": "processes", **overrides})
 
 
 def test_the_trainer_samples_in_processes_over_a_pool(scenario_cache: Path, tmp_path: Path) -> None:
