@@ -14,12 +14,17 @@ On one ``sim-server --pool N`` (SUMO, `cf` by default) and, for the hop's cost, 
   timed once learning runs (after the warm-up and the compiled update's load: `scaling.training`;
   issue 35's target: >= 0.6x the independent drivers).
 
-    python benchmarks/pool.py --pool 2 --seconds 30
+With ``--cpu`` (Linux), where the CPU went in each of the last two: every process's share of
+a core and its CPU time per env step, by role (`benchmarks/cpu_use.py`), and how many of the
+machine's cores were busy.
+
+    python benchmarks/pool.py --pool 2 --seconds 30 [--cpu]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import multiprocessing
 import os
@@ -36,6 +41,7 @@ sys.path.insert(0, str(ROOT))
 
 from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
+from benchmarks.cpu_use import CpuUse, describe
 from benchmarks.scaling import stepping, training
 from protocol.readiness import LISTENING, stop_process, wait_for_line
 
@@ -80,6 +86,40 @@ def independent(address: str, scenario: str, seconds: float, count: int) -> floa
     return sum(steps) / max(seconds, elapsed - 2.0)  # the processes' start-up is not stepping
 
 
+def measure(
+    args: argparse.Namespace,
+    pool_address: str,
+    plain: subprocess.Popen[str],
+    plain_address: str,
+    cpu: CpuUse | None,
+) -> dict[str, Any]:
+    """Every measurement of the table, one after the other (`cpu`: where the CPU went)."""
+    row: dict[str, Any] = {
+        "one_client_plain": idm_driver(plain_address, args.scenario, args.seconds, 0)
+        / args.seconds,
+        "one_client_pool": idm_driver(pool_address, args.scenario, args.seconds, 0) / args.seconds,
+    }
+    stop_process(plain)
+    started = time.monotonic()
+    row["independent_idm"] = independent(pool_address, args.scenario, args.seconds, args.pool)
+    if cpu is not None:  # from after the drivers' start-up (a few seconds) to their end
+        use = cpu.table(started + 6.0, time.monotonic() - 2.0, row["independent_idm"])
+        row["cpu_independent_idm"] = use
+        print(describe("independent IDM drivers (this process's children)", use), flush=True)
+    lock_step = stepping([pool_address] * args.pool, args.scenario, args.seconds)
+    row["lock_step"] = lock_step["env_steps_per_s"]
+    for sampling in args.sampling:
+        trained = training([pool_address] * args.pool, args.scenario, args.seconds, sampling)
+        rate = trained["train_env_steps_per_s"]
+        row[f"training_{sampling}"] = rate
+        row[f"training_{sampling}_updates_per_s"] = trained["updates_per_s"]
+        if cpu is not None:  # the first second after learning began may hold the load's end
+            use = cpu.table(trained["timed_from"] + 1.0, trained["timed_to"] - 1.0, rate)
+            row[f"cpu_training_{sampling}"] = use
+            print(describe(f"training, sampling {sampling}", use), flush=True)
+    return row
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pool", type=int, default=2, help="simulators in the pool")
@@ -89,26 +129,16 @@ def main() -> int:
     parser.add_argument(
         "--sampling", nargs="+", default=["local", "processes"], help="training's sampling kinds"
     )
+    parser.add_argument("--cpu", action="store_true", help="where the CPU went, by process")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/pool.json")
     args = parser.parse_args()
 
     pool, pool_address = start_server(args.backend, "--pool", str(args.pool))
     plain, plain_address = start_server(args.backend)
+    cpu = CpuUse({pool.pid: ("pool front", "simulators")}) if args.cpu else None
     try:
-        row: dict[str, Any] = {
-            "one_client_plain": idm_driver(plain_address, args.scenario, args.seconds, 0)
-            / args.seconds,
-            "one_client_pool": idm_driver(pool_address, args.scenario, args.seconds, 0)
-            / args.seconds,
-        }
-        stop_process(plain)
-        row["independent_idm"] = independent(pool_address, args.scenario, args.seconds, args.pool)
-        lock_step = stepping([pool_address] * args.pool, args.scenario, args.seconds)
-        row["lock_step"] = lock_step["env_steps_per_s"]
-        for sampling in args.sampling:
-            trained = training([pool_address] * args.pool, args.scenario, args.seconds, sampling)
-            row[f"training_{sampling}"] = trained["train_env_steps_per_s"]
-            row[f"training_{sampling}_updates_per_s"] = trained["updates_per_s"]
+        with cpu or contextlib.nullcontext():
+            row = measure(args, pool_address, plain, plain_address, cpu)
     finally:
         stop_process(plain)
         stop_process(pool)

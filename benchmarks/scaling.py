@@ -133,6 +133,8 @@ def training(
         "episodes": progress.episode,
         "sampling": trainer.sampling,
         "device": str(trainer.device),
+        "timed_from": began,
+        "timed_to": ended,
     }
 
 
@@ -163,7 +165,9 @@ def main() -> int:
                     trained = training(
                         addresses[:count], args.scenario, args.seconds, sampling, device
                     )
-                    row[f"training/{sampling}/{device}"] = trained
+                    row[f"training/{sampling}/{device}"] = {
+                        key: value for key, value in trained.items() if not key.startswith("timed")
+                    }
                     print(
                         f"N={count}, {sampling}, {device}: training "
                         f"{trained['train_env_steps_per_s']:6.0f} steps/s, "

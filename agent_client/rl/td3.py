@@ -329,10 +329,10 @@ class Agent:
 
     def maybe_update(self, buffer: ReplayBuffer, n_transitions: int = 1) -> dict[str, float] | None:
         """`updates_due` then that many updates from `buffer`; the last update's metrics or None."""
-        metrics = None
-        for _ in range(self.updates_due(n_transitions)):
-            metrics = self.update(buffer.sample(self.config.batch_size))
-        return metrics
+        due = self.updates_due(n_transitions)
+        if not due:
+            return None
+        return self.update_many([buffer.sample(self.config.batch_size) for _ in range(due)])[-1]
 
     @torch.no_grad()
     def td_target(self, batch: Batch) -> torch.Tensor:

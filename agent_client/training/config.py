@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
-import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,20 +27,12 @@ from typing import TYPE_CHECKING, Any
 from agent_client.defaults import DEFAULT_SCENARIO, TRAINING_EVALUATION_SEED, TRAINING_SEED
 from agent_client.errors import UsageError
 from agent_client.rl.td3 import TD3Config, parse_device
+from agent_client.training.cores import usable_cores
 
 SAMPLING_KINDS = ("auto", "local", "processes", "ray")
 """Where training episodes run: lock-step in the learner's process, or sampling workers
 (`agent_client.training.chunks`) in processes of their own or on Ray; auto chooses between the
 first two (`TrainConfig.sampling_on`)."""
-
-
-def usable_cores() -> int:
-    """The CPU cores this process may run on (its affinity: a container's or taskset's limit,
-    not the machine's count)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # no affinity on this platform (macOS)
-        return os.cpu_count() or 1
 
 
 if TYPE_CHECKING:

@@ -21,6 +21,7 @@ import contextlib
 import multiprocessing
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from multiprocessing.connection import Connection, wait
@@ -65,7 +66,8 @@ class ProcessWorkers:
                 name=f"av-bridge sampling worker {index}",
                 daemon=True,  # stopped at the learner's exit if close() was never reached
             )
-            process.start()
+            with _ctrl_c_ignored():
+                process.start()
             child.close()
             self.processes.append(process)
             self.pipes.append(pipe)
@@ -146,7 +148,12 @@ class ProcessWorkers:
             kind, content = self.pipes[index].recv()
         except (EOFError, OSError) as exc:
             why = self._exited(index, exc)
-            raise SamplingFailed(f"sampling worker {index} ({where}): {why}") from exc
+            raise SamplingFailed(
+                f"sampling worker {index} ({where}): {why} before it could start; in a script "
+                'of your own, start training under `if __name__ == "__main__":` (the '
+                "workers are started with multiprocessing's spawn, which imports the script "
+                'again), or set sampling = "local"'
+            ) from exc
         if kind != "ready":
             raise SamplingFailed(f"sampling worker {index} ({where}) could not start: {content}")
 
@@ -155,6 +162,22 @@ class ProcessWorkers:
         process.join(1.0)
         code = process.exitcode
         return f"its process exited (exit code {code})" if code is not None else f"{exc!r}"
+
+
+@contextlib.contextmanager
+def _ctrl_c_ignored() -> Iterator[None]:
+    """SIGINT ignored while a worker is spawned: the child inherits the ignored disposition
+    (Python keeps it), so a Ctrl-C in the terminal while it imports, before `serve` moves it
+    to a process group of its own, is the learner's alone. Only the main thread can change
+    a signal's handler: a worker started from another thread has that second unprotected."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_seed: int) -> None:

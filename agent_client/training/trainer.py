@@ -546,16 +546,18 @@ class Trainer:
         losses, self._losses = self._losses, []
         ego = {"ego": slot.ego_id} if isinstance(slot, EgoSlot) else {}
         ended = self._received if slot.ended_at is None else slot.ended_at
+        global_step = self.progress.global_step - self._received + ended
         return {
             "episode": self.progress.episode,
             **ego,
-            "global_step": self.progress.global_step - self._received + ended,
+            "global_step": global_step,
             "wall_time": round(self.progress.wall_time, 2),
             **{k: v for k, v in summary.to_dict().items() if k != "episode"},
             "critic_loss": float(np.mean(losses)) if losses else float("nan"),
             "q_mean": q_mean,
             "q_upper_bound": self.q_bound,
-            "noise_scale": self.agent.noise_scale,
+            # the schedule's, not the agent's: sampling workers act with their own noise
+            "noise_scale": noise_scale_at(self.config, global_step),
         }
 
     def _pretrain(self) -> None:

@@ -22,8 +22,10 @@ from agent_client.rl.td3 import Agent, TD3Config
 from agent_client.training.chunks import ChunkCollector
 from agent_client.training.collect import LocalCollector, Slot, Transition
 from agent_client.training.config import TrainConfig
+from agent_client.training.exploration import noise_scale_at
 from agent_client.training.process_collect import ProcessWorkers
-from agent_client.training.sampler import SamplingFailed, Settings, policy_arrays
+from agent_client.training.run_log import read_rows
+from agent_client.training.sampler import SamplingFailed, Settings, WorkerSpec, policy_arrays
 from agent_client.training.trainer import Trainer
 from tests.conftest import RunningServer, sim_server
 from tests.integration.test_ray_sampling import ray_config
@@ -125,6 +127,32 @@ def test_a_worker_that_dies_fails_the_receive_by_name(sumo: RunningServer) -> No
     assert not alive(pid)
 
 
+def test_a_ctrl_c_while_the_workers_start_is_not_theirs(
+    sumo: RunningServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SIGINT reaches a worker that is still importing (the terminal's Ctrl-C, sent to the
+    learner's process group, before the worker moved to a group of its own): it lives on."""
+    workers = ProcessWorkers()
+    wait_ready = ProcessWorkers._wait_ready
+
+    def interrupted_first(self: ProcessWorkers, index: int, spec: WorkerSpec) -> None:
+        pid = self.processes[index].pid
+        assert pid is not None
+        os.kill(pid, signal.SIGINT)
+        wait_ready(self, index, spec)
+
+    monkeypatch.setattr(ProcessWorkers, "_wait_ready", interrupted_first)
+    collector = ChunkCollector(
+        workers, [worker_spec(sumo.address)], lambda: greedy_policy(), lambda: Settings(False),
+        lambda: 0, chunk_steps=10,
+    )  # fmt: skip
+    try:
+        collector.send()
+        assert len(collector.receive().transitions) >= 10
+    finally:
+        collector.close()
+
+
 def test_a_worker_that_cannot_take_its_server_says_why(sumo: RunningServer) -> None:
     holder = RemoteEnv(sumo.address, "cf")  # the server serves one client at a time
     collector = ChunkCollector(
@@ -146,11 +174,13 @@ def processes_config(**overrides: object) -> TrainConfig:
 
 def test_the_trainer_samples_in_processes_over_a_pool(scenario_cache: Path, tmp_path: Path) -> None:
     """Two sampling processes on one ``--pool 2`` address: both sessions drive, the learner
-    learns from what they bring, and the processes are gone after the run."""
+    learns from what they bring, the episodes log the exploration the workers were given, and
+    the processes are gone after the run."""
+    config = processes_config(noise_decay_steps=200, noise_final=0.2)
     with sim_server(
         "--backend", "sumo", "--pool", "2", cache_dir=scenario_cache, ready_timeout_s=180
     ) as pool:
-        trainer = Trainer(processes_config(), [pool.address] * 2, tmp_path / "run")
+        trainer = Trainer(config, [pool.address] * 2, tmp_path / "run")
         collector = trainer.collector
         assert isinstance(collector, ChunkCollector)
         assert isinstance(collector.workers, ProcessWorkers)
@@ -172,6 +202,11 @@ def test_the_trainer_samples_in_processes_over_a_pool(scenario_cache: Path, tmp_
             assert progress.updates > 0  # learning started: the policy copies acted
             assert set(finished) == {0, 1}  # both sessions, one worker each
             assert collector._policy_version >= 2  # refreshed from the learner
+            rows = read_rows(tmp_path / "run" / "episodes.csv")
+            scales = [float(row["noise_scale"]) for row in rows]
+            steps = [int(row["global_step"]) for row in rows]
+            assert scales == pytest.approx([noise_scale_at(config, step) for step in steps])
+            assert scales[-1] == pytest.approx(0.2)  # decayed, as the workers' noise was
             # the trainer has its sessions back: its own connection drives again
             trainer.env.reset(seed=1)
             trainer.env.step(np.zeros(1, np.float32))
@@ -188,7 +223,6 @@ def test_one_server_and_one_seed_give_the_same_run_twice(
 ) -> None:
     """One sampling process asks for a chunk only after the learner has taken the last: the
     policy copies it acts with, and so the run, follow from the seed alone."""
-    from agent_client.training.run_log import read_rows
 
     def episodes(name: str) -> list[tuple[str, ...]]:
         trainer = Trainer(processes_config(episodes=6), sumo.address, tmp_path / name)

@@ -330,6 +330,16 @@ def test_updates_due_realises_learning_starts_and_fractional_ratio() -> None:
     assert vector.updates_due(n_transitions=4) == 8
 
 
+def test_maybe_update_runs_the_updates_due_and_returns_the_last_metrics() -> None:
+    config = eager(TD3Config.td3(batch_size=16, learning_starts=4, updates_per_step=2.0))
+    agent = Agent(OBS_DIM, 3, config, seed=0)
+    buffer = _bandit_buffer(3, seed=0, n=100, terminated=0.0)
+    assert agent.maybe_update(buffer, n_transitions=3) is None
+    metrics = agent.maybe_update(buffer, n_transitions=2)  # 5 transitions: 2 past the start
+    assert agent.n_updates == 4
+    assert metrics is not None and metrics["actor_loss"] != 0.0  # the 4th is a delayed one
+
+
 def test_actor_l2_is_part_of_the_actor_loss() -> None:
     buffer = _bandit_buffer(1, seed=0, n=100)
     losses = []
