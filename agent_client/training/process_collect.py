@@ -202,7 +202,10 @@ def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_see
         for request in _requests(pipe, parent):
             if request[0] == "sample":
                 try:
-                    reply: tuple[str, Any] = ("chunk", worker.sample(*request[1:]))
+                    # a request waiting (close, drop) ends the chunk early: the learner
+                    # reads what came, and a close is quick even in a long chunk
+                    chunk = worker.sample(*request[1:], interrupted=pipe.poll)
+                    reply: tuple[str, Any] = ("chunk", chunk)
                 except Exception as exc:  # the learner decides what a failure means
                     reply = ("error", _why(exc))
                 pipe.send(reply)

@@ -11,7 +11,7 @@ imports torch.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -163,9 +163,15 @@ class SamplingWorker:
         self._failures_in_a_row = 0
 
     def sample(
-        self, n_steps: int, settings: Settings, policy_state: dict[str, Any] | None = None
+        self,
+        n_steps: int,
+        settings: Settings,
+        policy_state: dict[str, Any] | None = None,
+        interrupted: Callable[[], bool] | None = None,
     ) -> Chunk:
-        """Take at least `n_steps` steps (episodes carry on across calls) and return them."""
+        """Take at least `n_steps` steps (episodes carry on across calls) and return them;
+        fewer where `interrupted` (asked after every step) says the learner wants something
+        else first (to stop, or new episodes)."""
         started = time.perf_counter()
         if policy_state is not None:
             self.exploration.load(policy_state)
@@ -201,6 +207,8 @@ class SamplingWorker:
                 continue
             self._failures_in_a_row = 0
             chunk.extend(collected)
+            if interrupted is not None and interrupted():
+                break
         for slot in chunk.finished:
             slot.env_index = self.index
         chunk.seconds = time.perf_counter() - started
