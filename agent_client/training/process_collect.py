@@ -204,7 +204,8 @@ def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_see
                 try:
                     # a request waiting (close, drop) ends the chunk early: the learner
                     # reads what came, and a close is quick even in a long chunk
-                    chunk = worker.sample(*request[1:], interrupted=pipe.poll)
+                    _, n_steps, settings, policy = request
+                    chunk = worker.sample(n_steps, settings, policy, interrupted=pipe.poll)
                     reply: tuple[str, Any] = ("chunk", chunk)
                 except Exception as exc:  # the learner decides what a failure means
                     reply = ("error", _why(exc))
