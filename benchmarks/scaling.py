@@ -79,6 +79,8 @@ class StopAfter(QuietReporter):
         self.trainer: Trainer | None = None
         self.learning_from: tuple[float, int, int] | None = None
         """(time, env steps, updates) at the first episode end with updates behind it."""
+        self.stopped_at: float | None = None
+        """When the stop was asked for (the run's checkpoint and release come after)."""
 
     def message(self, text: str) -> None:
         if text.startswith(("learning begins", "the compiled update")):
@@ -90,7 +92,8 @@ class StopAfter(QuietReporter):
             return
         if self.learning_from is None:
             self.learning_from = (now, trainer.progress.global_step, trainer.agent.n_updates)
-        elif now - self.learning_from[0] > self.seconds:
+        elif now - self.learning_from[0] > self.seconds and self.stopped_at is None:
+            self.stopped_at = now
             trainer.request_stop()
 
 
@@ -134,7 +137,7 @@ def training(
         "sampling": trainer.sampling,
         "device": str(trainer.device),
         "timed_from": began,
-        "timed_to": ended,
+        "timed_to": reporter.stopped_at or ended,
     }
 
 

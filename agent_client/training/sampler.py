@@ -128,7 +128,8 @@ class Exploration:
         if not self.settings.learning or self._actor is None:
             return self.warmup(slot)
         x = slot.x[None].astype(np.float32)
-        u = min(1.0, max(-1.0, float(self._actor(x)[0]) + self.noise.sample()))
+        u = float(self._actor(x)[0]) + self.noise.sample()
+        u = float(np.clip(u, -1.0, 1.0))  # NaN stays NaN: a diverged actor fails the step
         if self._critic is None or self.spec.n_lanes == 1:
             return u, 0
         q = self._critic(x, np.array([u], np.float32))
