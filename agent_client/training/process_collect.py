@@ -21,6 +21,7 @@ import contextlib
 import multiprocessing
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from multiprocessing.connection import Connection, wait
@@ -65,7 +66,7 @@ class ProcessWorkers:
                 name=f"av-bridge sampling worker {index}",
                 daemon=True,  # stopped at the learner's exit if close() was never reached
             )
-            with _ctrl_c_blocked():
+            with _ctrl_c_ignored():
                 process.start()
             child.close()
             self.processes.append(process)
@@ -164,16 +165,21 @@ class ProcessWorkers:
 
 
 @contextlib.contextmanager
-def _ctrl_c_blocked() -> Iterator[None]:
-    """SIGINT blocked in this thread while a worker is spawned: the child inherits the blocked
-    mask, so a Ctrl-C in the terminal while it imports, before `serve` moves it to a process
-    group of its own, stays pending there and is dropped when `serve` ignores it. Here it is
-    delivered when the block ends (or at once to another thread), not lost."""
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+def _ctrl_c_ignored() -> Iterator[None]:
+    """SIGINT ignored while a worker is spawned: the child inherits the ignored disposition
+    (Python keeps it), so a Ctrl-C in the terminal while it imports, before `serve` moves it
+    to a process group of its own, is the learner's alone (a blocked mask would not do: the
+    spawn clears it). A Ctrl-C in the few milliseconds of the spawn itself is lost; the next
+    one counts. Only the main thread can change a signal's handler: a worker started from
+    another thread has that second unprotected."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        signal.signal(signal.SIGINT, previous)
 
 
 def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_seed: int) -> None:
@@ -186,7 +192,6 @@ def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_see
     with contextlib.suppress(OSError):
         os.setpgid(0, 0)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked since the spawn
     parent = os.getppid()
     try:
         worker = SamplingWorker(spec, index, stride, first_seed)
