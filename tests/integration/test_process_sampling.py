@@ -7,7 +7,6 @@ from __future__ import annotations
 import itertools
 import os
 import signal
-import time
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -24,7 +23,7 @@ from agent_client.training.chunks import ChunkCollector
 from agent_client.training.collect import LocalCollector, Slot, Transition
 from agent_client.training.config import TrainConfig
 from agent_client.training.exploration import noise_scale_at
-from agent_client.training.process_collect import CLOSE_GRACE_S, ProcessWorkers
+from agent_client.training.process_collect import ProcessWorkers
 from agent_client.training.run_log import read_rows
 from agent_client.training.sampler import SamplingFailed, Settings, WorkerSpec, policy_arrays
 from agent_client.training.trainer import Trainer
@@ -156,7 +155,8 @@ def test_a_ctrl_c_while_the_workers_start_is_not_theirs(
 
 def test_close_ends_a_long_chunk_and_the_worker_says_goodbye(fake_server: RunningServer) -> None:
     """A close while a worker samples a long chunk: it stops after its current step, sends
-    what it took and says goodbye, well within the grace before a kill."""
+    what it took and says goodbye within the grace (`CLOSE_GRACE_S`) that would end in a
+    kill: its chunk of 10^7 steps would take hours."""
     workers = ProcessWorkers()
     collector = ChunkCollector(
         workers, [worker_spec(fake_server.address)], lambda: greedy_policy(),
@@ -165,9 +165,7 @@ def test_close_ends_a_long_chunk_and_the_worker_says_goodbye(fake_server: Runnin
     collector.send()
     process = workers.processes[0]
     assert not workers.wait([0], 1.0)  # sampling its chunk
-    started = time.monotonic()
     collector.close()
-    assert time.monotonic() - started < CLOSE_GRACE_S / 2
     assert process.exitcode == 0  # ended by itself, not killed
     RemoteEnv(fake_server.address, "cf").close()  # the server is free again
 
