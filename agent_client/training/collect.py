@@ -18,6 +18,7 @@ import numpy as np
 from agent_client.drivers.episode import Episode
 from agent_client.drivers.policy import ActionScale
 from agent_client.envs.remote_env import RemoteEnv
+from agent_client.evaluation.metrics import EpisodeSummary, episode_summary
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
 from protocol.errors import ErrorCode
@@ -59,6 +60,18 @@ class Slot:
     ended_at: int | None = None
     """Once finished: how many of the transitions that came with it, in their order, were
     taken up to its last one (None: all of them); its row's env step count."""
+    summary: EpisodeSummary | None = None
+    """Once finished where it ran (`summarise`): its figures, its observations let go."""
+
+    def summarise(self) -> None:
+        """Keep the finished episode's figures and let its observations go: what crosses
+        between processes is then a few numbers, not every observation of the episode."""
+        self.summary = episode_summary(self.episode)
+        self.episode = Episode(self.episode.episode, self.episode.seed, self.episode.step_length)
+
+    def figures(self) -> EpisodeSummary:
+        """The finished episode's figures (computed here unless `summarise` did already)."""
+        return self.summary if self.summary is not None else episode_summary(self.episode)
 
 
 @dataclass

@@ -212,6 +212,7 @@ class SamplingWorker:
                 break
         for slot in chunk.finished:
             slot.env_index = self.index
+            slot.summarise()  # its figures travel to the learner, not its observations
         chunk.seconds = time.perf_counter() - started
         return chunk
 

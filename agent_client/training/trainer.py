@@ -55,7 +55,7 @@ from agent_client.errors import (
     ServerUnavailable,
     UsageError,
 )
-from agent_client.evaluation.metrics import EpisodeSummary, aggregate, episode_summary
+from agent_client.evaluation.metrics import EpisodeSummary, aggregate
 from agent_client.evaluation.targets import FailureScreen
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
@@ -540,7 +540,7 @@ class Trainer:
             self._checkpoint()
 
     def _episode_row(self, slot: Slot) -> dict[str, Any]:
-        summary = episode_summary(slot.episode)
+        summary = slot.figures()
         q = self.agent.q_values(np.stack(slot.states), np.array(slot.accelerations))
         q_mean = float(np.mean(np.take_along_axis(q, np.array(slot.lanes)[:, None], axis=1)))
         losses, self._losses = self._losses, []
