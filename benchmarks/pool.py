@@ -18,7 +18,10 @@ With ``--cpu`` (Linux), where the CPU went in each of the last two: every proces
 a core and its CPU time per env step, by role (`benchmarks/cpu_use.py`), and how many of the
 machine's cores were busy.
 
-    python benchmarks/pool.py --pool 2 --seconds 30 [--cpu]
+    python benchmarks/pool.py --pool 2 --seconds 30 [--cpu] [--set chunks_in_flight=2]
+
+`--set` hands a training setting on to every training measurement (a variant to compare with
+the defaults, in a run of its own: the ratio is to that run's drivers).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ sys.path.insert(0, str(ROOT))
 
 from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
+from agent_client.training.config import parse_assignment
 from benchmarks.cpu_use import CpuUse, describe
 from benchmarks.scaling import stepping, training
 from protocol.readiness import LISTENING, stop_process, wait_for_line
@@ -109,7 +113,10 @@ def measure(
     lock_step = stepping([pool_address] * args.pool, args.scenario, args.seconds)
     row["lock_step"] = lock_step["env_steps_per_s"]
     for sampling in args.sampling:
-        trained = training([pool_address] * args.pool, args.scenario, args.seconds, sampling)
+        trained = training(
+            [pool_address] * args.pool, args.scenario, args.seconds, sampling,
+            settings=[parse_assignment(text) for text in args.set],
+        )  # fmt: skip
         rate = trained["train_env_steps_per_s"]
         row[f"training_{sampling}"] = rate
         row[f"training_{sampling}_updates_per_s"] = trained["updates_per_s"]
@@ -130,6 +137,9 @@ def main() -> int:
         "--sampling", nargs="+", default=["local", "processes"], help="training's sampling kinds"
     )
     parser.add_argument("--cpu", action="store_true", help="where the CPU went, by process")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="for every training"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/pool.json")
     args = parser.parse_args()
 
@@ -158,7 +168,7 @@ def main() -> int:
         print(f"| {label} | {row[name]:.0f} | {row[name] / independent_rate:.2f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {"cores": os.cpu_count(), "pool": args.pool, "scenario": args.scenario,
-              "seconds": args.seconds, **row}  # fmt: skip
+              "seconds": args.seconds, "settings": args.set, **row}  # fmt: skip
     args.out.write_text(json.dumps(record, indent=2) + "\n")
     return 0
 

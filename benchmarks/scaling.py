@@ -27,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -103,9 +104,11 @@ def training(
     seconds: float,
     sampling: str = "local",
     device: str = "cpu",
+    settings: Sequence[dict[str, Any]] = (),
 ) -> dict[str, float]:
     """The learner over `addresses` for `seconds` of learning (after the warm-up and the
-    compiled update's load, which are not timed): env steps/s and updates/s."""
+    compiled update's load, which are not timed): env steps/s and updates/s. `settings`:
+    `parse_assignment`s applied last (a variant to compare with the defaults)."""
     config = apply_overrides(
         TrainConfig(),
         {
@@ -118,6 +121,8 @@ def training(
             "learner": {"learning_starts": 500},
         },
     )
+    for assignment in settings:
+        config = apply_overrides(config, assignment)
     reporter = StopAfter(seconds)
     with tempfile.TemporaryDirectory() as out:
         trainer = Trainer(config, addresses, Path(out), reporter=reporter)

@@ -1,11 +1,14 @@
 """Sampling apart from the learner: workers that each drive one server with a copy of the
 policy, asked for chunks of steps while the learner updates.
 
-`ChunkCollector` has the `Collector` shape of `LocalCollector`: `send` asks every idle worker
-for its next chunk (with a fresh policy copy when one is due) and returns at once; the learner
-updates meanwhile; `receive` waits for the first chunk to come back and takes every chunk that
-is ready. A worker is at most one chunk ahead of the learner, so the update-to-data ratio holds
-and the policy a worker acts with is at most ``policy_sync_every + sampling_chunk`` steps old.
+`ChunkCollector` has the `Collector` shape of `LocalCollector`: `send` asks every worker for
+chunks until it has ``in_flight`` requests of it outstanding (with a fresh policy copy when one
+is due) and returns at once; the learner updates meanwhile; `receive` waits for the first chunk
+to come back and takes every chunk that is ready. With one in flight (the default) a worker
+waits for the learner's next ask after each chunk; with two it starts its next chunk as soon as
+it sends one. A worker is at most ``in_flight`` chunks ahead of the learner, so the
+update-to-data ratio holds and the policy a worker acts with is at most ``policy_sync_every +
+in_flight * sampling_chunk`` steps old (with one worker).
 
 Where the workers run is a `Workers` group: processes on this machine
 (`agent_client.training.process_collect`, ``sampling = "processes"``) or Ray actors wherever
@@ -44,17 +47,19 @@ class Workers(Protocol):
         """The policy copy in the form `ask` sends it (stored once, sent to many)."""
 
     def ask(self, index: int, n_steps: int, settings: Settings, policy: Any | None) -> None:
-        """Ask worker `index` for a chunk of at least `n_steps` steps; does not wait."""
+        """Ask worker `index` for a chunk of at least `n_steps` steps; does not wait (a
+        worker answers its requests in the order they were asked)."""
 
     def drop_episodes(self, index: int) -> None:
-        """Have worker `index` start a new episode after the request it is answering."""
+        """Have worker `index` start a new episode after the requests asked before this (a
+        worker may cut them short: their answers are discarded)."""
 
     def wait(self, indices: Sequence[int], timeout_s: float) -> list[int]:
-        """The workers among `indices` whose answer is ready, waiting up to `timeout_s` for
-        one; [] when none came."""
+        """The workers among `indices` whose next answer is ready, waiting up to `timeout_s`
+        for one; [] when none came."""
 
     def answer(self, index: int) -> Chunk:
-        """Worker `index`'s ready answer; `SamplingFailed` (saying why) if it raised or
+        """Worker `index`'s next answer (ready); `SamplingFailed` (saying why) if it raised or
         exited."""
 
     def close(self) -> None:
@@ -74,6 +79,7 @@ class ChunkCollector:
         *,
         chunk_steps: int = 64,
         sync_every: int = 500,
+        in_flight: int = 1,
         hand_over: Sequence[RemoteEnv] = (),
         names: Sequence[str] = (),
     ) -> None:
@@ -92,12 +98,14 @@ class ChunkCollector:
         self.next_seed = next_seed
         self.chunk_steps = chunk_steps
         self.sync_every = sync_every
+        self.in_flight = in_flight
         self.hand_over = list(hand_over)
         self._started = False
-        self._pending: set[int] = set()
-        """Workers asked for a chunk whose answer is due."""
-        self._stale: set[int] = set()
-        """Workers whose due answer was asked for before `drop_episodes`: discarded."""
+        self._pending = [0] * len(self.specs)
+        """Per worker: requests whose answer is due."""
+        self._stale = [0] * len(self.specs)
+        """Per worker: of its due answers, the first ones, asked for before `drop_episodes`:
+        discarded."""
         self._policy: Any = None
         self._policy_version = 0
         self._worker_versions = [0] * len(self.specs)
@@ -119,35 +127,37 @@ class ChunkCollector:
             self._since_sync = 0
         settings = self.settings()
         for index in range(len(self.specs)):
-            if index in self._pending:
-                continue
-            fresh = self._worker_versions[index] != self._policy_version
-            self._worker_versions[index] = self._policy_version
-            self.workers.ask(index, self.chunk_steps, settings, self._policy if fresh else None)
-            self._pending.add(index)
+            while self._pending[index] < self.in_flight:
+                fresh = self._worker_versions[index] != self._policy_version
+                self._worker_versions[index] = self._policy_version
+                policy = self._policy if fresh else None
+                self.workers.ask(index, self.chunk_steps, settings, policy)
+                self._pending[index] += 1
 
     def receive(self) -> Collected:
         collected = Collected()
-        while not collected.transitions and not collected.finished and self._pending:
-            ready = self.workers.wait(sorted(self._pending), self.chunk_timeout_s)
+        while not collected.transitions and not collected.finished and any(self._pending):
+            busy = [index for index, due in enumerate(self._pending) if due]
+            ready = self.workers.wait(busy, self.chunk_timeout_s)
             if not ready:
-                busy = ", ".join(self.servers[i] for i in sorted(self._pending))
+                names = ", ".join(self.servers[i] for i in busy)
                 raise SamplingFailed(
                     f"no sampling worker returned a chunk within {self.chunk_timeout_s:g} s "
-                    f"(workers of {busy})"
+                    f"(workers of {names})"
                 )
             for index in ready:
-                self._pending.discard(index)
+                self._pending[index] -= 1
+                stale = self._stale[index] > 0  # asked for before drop_episodes: not wanted
+                if stale:
+                    self._stale[index] -= 1
                 try:
                     chunk = self.workers.answer(index)
                 except SamplingFailed as exc:
-                    if index in self._stale:  # asked for before drop_episodes: not wanted
-                        self._stale.discard(index)
+                    if stale:
                         continue
                     where = f"sampling worker {index} ({self.servers[index]})"
                     raise SamplingFailed(f"{where} failed: {exc}") from exc
-                if index in self._stale:
-                    self._stale.discard(index)
+                if stale:
                     continue
                 self.chunks += 1
                 collected.extend(chunk)
@@ -156,7 +166,7 @@ class ChunkCollector:
 
     def drop_episodes(self) -> None:
         """Discard the chunks in flight and start new episodes on every worker."""
-        self._stale |= self._pending
+        self._stale = list(self._pending)
         if self._started:
             for index in range(len(self.specs)):
                 self.workers.drop_episodes(index)
@@ -178,8 +188,8 @@ class ChunkCollector:
         """Stop the workers; each says goodbye to its server."""
         if self._started:
             self._started = False
-            self._pending.clear()
-            self._stale.clear()
+            self._pending = [0] * len(self.specs)
+            self._stale = [0] * len(self.specs)
             self._policy = None  # workers started again get the policy with their first ask
             self.workers.close()
 
@@ -270,5 +280,6 @@ def chunk_collector(
         workers = ProcessWorkers()
     return ChunkCollector(
         workers, specs, policy_state, settings, next_seed, chunk_steps=config.sampling_chunk,
-        sync_every=config.policy_sync_every, hand_over=vec.envs, names=names,
+        sync_every=config.policy_sync_every, in_flight=config.chunks_in_flight,
+        hand_over=vec.envs, names=names,
     )  # fmt: skip

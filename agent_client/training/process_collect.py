@@ -23,6 +23,7 @@ import os
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator, Sequence
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
@@ -192,22 +193,23 @@ def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_see
     with contextlib.suppress(OSError):
         os.setpgid(0, 0)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    parent = os.getppid()
     try:
         worker = SamplingWorker(spec, index, stride, first_seed)
     except Exception as exc:  # sent to the learner, which raises it
         with contextlib.suppress(OSError):
             pipe.send(("error", _why(exc)))
         return
+    requests = Requests(pipe, os.getppid())
     try:
         pipe.send(("ready", None))
-        for request in _requests(pipe, parent):
+        for request in requests:
             if request[0] == "sample":
+                _, n_steps, settings, policy = request
                 try:
-                    # a request waiting (close, drop) ends the chunk early: the learner
-                    # reads what came, and a close is quick even in a long chunk
-                    _, n_steps, settings, policy = request
-                    chunk = worker.sample(n_steps, settings, policy, interrupted=pipe.poll)
+                    # a drop or a close behind this request (asked while it runs, or before
+                    # it began: a chunk asked ahead) ends it after a step: the learner reads
+                    # what came, and a close is quick even in a long chunk
+                    chunk = worker.sample(n_steps, settings, policy, requests.interrupted)
                     reply: tuple[str, Any] = ("chunk", chunk)
                 except Exception as exc:  # the learner decides what a failure means
                     reply = ("error", _why(exc))
@@ -222,11 +224,28 @@ def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_see
         worker.close()
 
 
-def _requests(pipe: Connection, parent: int) -> Iterator[tuple[Any, ...]]:
-    """The learner's requests, until it is gone (its end closed, or we were orphaned)."""
-    while os.getppid() == parent:
-        if pipe.poll(LEARNER_CHECK_S):
-            yield pipe.recv()
+class Requests:
+    """The learner's requests in the order it sent them, until it is gone (its end closed, or
+    we were orphaned). Read ahead while a chunk is sampled: a drop or a close behind the
+    request in hand interrupts it, a sample request (the next chunk, asked in advance) waits."""
+
+    def __init__(self, pipe: Connection, parent: int) -> None:
+        self.pipe = pipe
+        self.parent = parent
+        self.queued: deque[tuple[Any, ...]] = deque()
+
+    def __iter__(self) -> Iterator[tuple[Any, ...]]:
+        while self.queued or os.getppid() == self.parent:
+            if self.queued:
+                yield self.queued.popleft()
+            elif self.pipe.poll(LEARNER_CHECK_S):
+                self.queued.append(self.pipe.recv())
+
+    def interrupted(self) -> bool:
+        """Whether a drop or a close came behind the request in hand (reads what came)."""
+        while self.pipe.poll():
+            self.queued.append(self.pipe.recv())
+        return any(request[0] != "sample" for request in self.queued)
 
 
 def _why(exc: Exception) -> str:

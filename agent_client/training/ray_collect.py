@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -40,8 +41,8 @@ class RayWorkers:
         self._ray = ray
         self.ray_address = ray_address
         self.actors: list[Any] = []
-        self._refs: dict[int, Any] = {}
-        """Worker index -> object ref of the chunk it is sampling."""
+        self._refs: dict[int, deque[Any]] = {}
+        """Worker index -> object refs of the chunks asked of it, in order."""
         self._started_ray = False
 
     def start(self, specs: Sequence[WorkerSpec], first_seed: int) -> None:
@@ -65,14 +66,15 @@ class RayWorkers:
         return self._ray.put(policy_arrays(policy_state))  # numpy: a worker needs no torch
 
     def ask(self, index: int, n_steps: int, settings: Settings, policy: Any | None) -> None:
-        self._refs[index] = self.actors[index].sample.remote(n_steps, settings, policy)
+        ref = self.actors[index].sample.remote(n_steps, settings, policy)
+        self._refs.setdefault(index, deque()).append(ref)
 
     def drop_episodes(self, index: int) -> None:
-        self.actors[index].drop_episodes.remote()  # runs after the chunk it is sampling
+        self.actors[index].drop_episodes.remote()  # runs after the chunks asked before it
 
     def wait(self, indices: Sequence[int], timeout_s: float) -> list[int]:
         ray = self._ray
-        refs = {self._refs[i]: i for i in indices}
+        refs = {self._refs[i][0]: i for i in indices}
         first, _ = ray.wait(list(refs), num_returns=1, timeout=timeout_s)
         if not first:
             return []
@@ -81,7 +83,7 @@ class RayWorkers:
 
     def answer(self, index: int) -> Chunk:
         try:
-            return self._ray.get(self._refs.pop(index))
+            return self._ray.get(self._refs[index].popleft())
         except self._ray.exceptions.RayError as exc:
             cause = getattr(exc, "cause", None) or exc
             raise SamplingFailed(str(cause)) from exc

@@ -170,6 +170,29 @@ def test_close_ends_a_long_chunk_and_the_worker_says_goodbye(fake_server: Runnin
     RemoteEnv(fake_server.address, "cf").close()  # the server is free again
 
 
+def test_a_drop_ends_the_chunk_in_hand_and_the_one_asked_ahead(
+    fake_server: RunningServer,
+) -> None:
+    """Two chunks of 10^7 steps in flight, then a drop: the worker ends the one in hand and
+    the one asked ahead after a step each (the learner discards both), then samples anew."""
+    workers = ProcessWorkers()
+    collector = ChunkCollector(
+        workers, [worker_spec(fake_server.address)], lambda: greedy_policy(),
+        lambda: Settings(False), lambda: 0, chunk_steps=10**7, in_flight=2,
+    )  # fmt: skip
+    collector.chunk_timeout_s = 30.0  # a chunk sampled to its end would take hours
+    try:
+        collector.send()
+        assert not workers.wait([0], 1.0)  # sampling its first chunk
+        collector.drop_episodes()
+        assert collector.receive().transitions == []  # both asked before the drop
+        collector.chunk_steps = 5
+        collector.send()
+        assert len(collector.receive().transitions) >= 5
+    finally:
+        collector.close()
+
+
 def test_a_worker_that_cannot_take_its_server_says_why(sumo: RunningServer) -> None:
     holder = RemoteEnv(sumo.address, "cf")  # the server serves one client at a time
     collector = ChunkCollector(

@@ -1,6 +1,7 @@
-"""`ChunkCollector`'s schedule over sampling workers, with workers faked in this process: chunks
-asked of idle workers only, policy copies sent when due, answers from before a drop discarded,
-failures named, restarted workers given the policy, servers handed back."""
+"""`ChunkCollector`'s schedule over sampling workers, with workers faked in this process: each
+worker asked until it has its requests in flight, policy copies sent when due, answers from
+before a drop discarded, failures named, restarted workers given the policy, servers handed
+back."""
 
 from __future__ import annotations
 
@@ -62,17 +63,20 @@ class FakeWorkers:
         self.closed += 1
 
 
-def collector(workers: FakeWorkers, n: int = 2, sync_every: int = 10) -> ChunkCollector:
+def collector(
+    workers: FakeWorkers, n: int = 2, sync_every: int = 10, in_flight: int = 1
+) -> ChunkCollector:
     policy = {"version": 0}
     return ChunkCollector(
         workers, [spec(f"tcp://127.0.0.1:{5555 + i}") for i in range(n)], lambda: policy,
         lambda: Settings(True), lambda: 100, chunk_steps=3, sync_every=sync_every,
+        in_flight=in_flight,
     )  # fmt: skip
 
 
 def test_each_idle_worker_is_asked_once_with_the_policy_when_it_is_due() -> None:
     workers = FakeWorkers()
-    chunks = collector(workers, sync_every=10)
+    chunks = collector(workers, sync_every=10, in_flight=1)
     chunks.send()
     assert [(i, p is not None) for i, p in workers.asked] == [(0, True), (1, True)]
     assert len(chunks.receive().transitions) == 6
@@ -92,6 +96,31 @@ def test_answers_asked_for_before_a_drop_are_discarded_even_failed_ones() -> Non
     assert workers.drops == [0, 1]
     assert chunks.receive().transitions == []  # both answers were from before the drop
     chunks.send()
+    assert len(chunks.receive().transitions) == 6
+
+
+def test_with_two_in_flight_a_worker_has_its_next_chunk_asked_before_it_answers() -> None:
+    workers = FakeWorkers()
+    chunks = collector(workers, in_flight=2)
+    chunks.send()  # the policy with the first request only
+    assert [(i, p is not None) for i, p in workers.asked] == [
+        (0, True), (0, False), (1, True), (1, False),
+    ]  # fmt: skip
+    assert len(chunks.receive().transitions) == 6  # one answer of each: one still due of each
+    chunks.send()  # each topped up to two again
+    assert [i for i, _ in workers.asked[4:]] == [0, 1]
+    assert len(chunks.receive().transitions) == 6
+
+
+def test_with_two_in_flight_a_drop_discards_every_answer_asked_before_it() -> None:
+    workers = FakeWorkers()
+    chunks = collector(workers, in_flight=2)
+    chunks.send()
+    workers.answers[1][1] = "its server went away"  # the chunk it was asked ahead for
+    chunks.drop_episodes()
+    assert chunks.receive().transitions == []  # all four from before the drop
+    chunks.send()
+    assert len(workers.asked) == 8
     assert len(chunks.receive().transitions) == 6
 
 
