@@ -93,7 +93,9 @@ def test_trainer_samples_on_ray_with_one_worker_per_server(
         sim_server("--backend", "sumo", cache_dir=scenario_cache) as one,
         sim_server("--backend", "sumo", cache_dir=scenario_cache) as two,
     ):
-        trainer = Trainer(ray_config(), [one.address, two.address], tmp_path / "run")
+        # two in flight: each actor has its next chunk queued behind the one it samples
+        config = ray_config(chunks_in_flight=2)
+        trainer = Trainer(config, [one.address, two.address], tmp_path / "run")
         finished: list[int] = []
         original = trainer._episode_done
         trainer._episode_done = lambda slot, log: (
