@@ -44,7 +44,8 @@ sys.path.insert(0, str(ROOT))
 
 from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
-from agent_client.training.config import parse_assignment
+from agent_client.errors import UsageError
+from agent_client.training.config import TrainConfig, apply_overrides, parse_assignment
 from benchmarks.cpu_use import CpuUse, describe
 from benchmarks.scaling import stepping, training
 from protocol.readiness import LISTENING, stop_process, wait_for_line
@@ -142,6 +143,14 @@ def main() -> int:
     )
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/pool.json")
     args = parser.parse_args()
+    try:  # a typo now, not minutes in
+        settings = [parse_assignment(text) for text in args.set]
+        for assignment in settings:
+            apply_overrides(TrainConfig(), assignment)
+    except UsageError as exc:
+        parser.error(str(exc))
+    if any("sampling" in assignment for assignment in settings):
+        parser.error("--set sampling=...: use --sampling (each kind is a row of its own)")
 
     pool, pool_address = start_server(args.backend, "--pool", str(args.pool))
     plain, plain_address = start_server(args.backend)

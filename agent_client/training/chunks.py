@@ -90,6 +90,8 @@ class ChunkCollector:
         sampling starts so that each worker can take its server. `names` say which worker is
         which in errors (default: the specs' addresses).
         """
+        if in_flight < 1:
+            raise ValueError(f"in_flight must be at least 1, got {in_flight}")
         self.workers = workers
         self.specs = list(specs)
         self.servers = list(names) or [spec.address for spec in self.specs]

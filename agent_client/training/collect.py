@@ -54,6 +54,7 @@ class Slot:
     x: np.ndarray
     mask: np.ndarray
     episode: Episode
+    """Its observations and rewards so far (let go by `summarise`: read `figures()`)."""
     states: list[np.ndarray] = field(default_factory=list)
     accelerations: list[float] = field(default_factory=list)
     lanes: list[int] = field(default_factory=list)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import queue
 import signal
 import threading
 import time
@@ -96,10 +97,11 @@ class ProcessWorkers:
         return sorted(by_pipe[pipe] for pipe in wait(list(by_pipe), timeout_s))  # type: ignore[index]
 
     def answer(self, index: int) -> Chunk:
-        if index in self._failed:
+        pipe = self.pipes[index]
+        if index in self._failed and not self._readable(pipe):  # answers it sent come first
             raise SamplingFailed(self._failed.pop(index))
         try:
-            kind, content = self.pipes[index].recv()
+            kind, content = pipe.recv()
         except (EOFError, OSError) as exc:
             raise SamplingFailed(self._exited(index, exc)) from exc
         if kind != "chunk":
@@ -158,6 +160,13 @@ class ProcessWorkers:
         if kind != "ready":
             raise SamplingFailed(f"sampling worker {index} ({where}) could not start: {content}")
 
+    @staticmethod
+    def _readable(pipe: Connection) -> bool:
+        try:
+            return pipe.poll()
+        except (EOFError, OSError):
+            return False
+
     def _exited(self, index: int, exc: BaseException) -> str:
         process = self.processes[index]
         process.join(1.0)
@@ -205,10 +214,11 @@ def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_see
         for request in requests:
             if request[0] == "sample":
                 _, n_steps, settings, policy = request
+                if requests.interrupted():  # asked ahead of a drop or close: not wanted
+                    n_steps = 0  # (the policy copy it carries is taken all the same)
                 try:
-                    # a drop or a close behind this request (asked while it runs, or before
-                    # it began: a chunk asked ahead) ends it after a step: the learner reads
-                    # what came, and a close is quick even in a long chunk
+                    # a drop or a close asked while it runs ends it after a step: the
+                    # learner reads what came, and a close is quick even in a long chunk
                     chunk = worker.sample(n_steps, settings, policy, requests.interrupted)
                     reply: tuple[str, Any] = ("chunk", chunk)
                 except Exception as exc:  # the learner decides what a failure means
@@ -226,26 +236,45 @@ def serve(pipe: Connection, spec: WorkerSpec, index: int, stride: int, first_see
 
 class Requests:
     """The learner's requests in the order it sent them, until it is gone (its end closed, or
-    we were orphaned). Read ahead while a chunk is sampled: a drop or a close behind the
-    request in hand interrupts it, a sample request (the next chunk, asked in advance) waits."""
+    we were orphaned). A thread reads them as they come, so that the learner's sends never wait
+    on ours: with two chunks in flight, a chunk and a policy copy each larger than the pipe's
+    buffer, sent both ways at once, would otherwise wait on each other for ever. A drop or a
+    close behind the request in hand interrupts it; a sample request (the next chunk, asked
+    in advance) waits its turn."""
 
     def __init__(self, pipe: Connection, parent: int) -> None:
         self.pipe = pipe
         self.parent = parent
-        self.queued: deque[tuple[Any, ...]] = deque()
+        self.queued: deque[tuple[Any, ...] | None] = deque()
+        """Read, not yet handed out; None: the learner is gone."""
+        self._inbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        threading.Thread(target=self._read, name="learner requests", daemon=True).start()
+
+    def _read(self) -> None:
+        """Every request as it comes, until the learner's end is closed (or we exit)."""
+        try:
+            while True:  # ends with the pipe: EOF once the learner closes it or is gone
+                self._inbox.put(self.pipe.recv())
+        except (EOFError, OSError):
+            self._inbox.put(None)
 
     def __iter__(self) -> Iterator[tuple[Any, ...]]:
-        while self.queued or os.getppid() == self.parent:
-            if self.queued:
-                yield self.queued.popleft()
-            elif self.pipe.poll(LEARNER_CHECK_S):
-                self.queued.append(self.pipe.recv())
+        while os.getppid() == self.parent or self.queued:
+            if not self.queued:
+                try:
+                    self.queued.append(self._inbox.get(timeout=LEARNER_CHECK_S))
+                except queue.Empty:
+                    continue
+            request = self.queued.popleft()
+            if request is None:
+                return
+            yield request
 
     def interrupted(self) -> bool:
-        """Whether a drop or a close came behind the request in hand (reads what came)."""
-        while self.pipe.poll():
-            self.queued.append(self.pipe.recv())
-        return any(request[0] != "sample" for request in self.queued)
+        """Whether a drop or a close came behind the request in hand, or the learner is gone."""
+        while not self._inbox.empty():  # one reader of it: what is there stays there
+            self.queued.append(self._inbox.get_nowait())
+        return any(request is None or request[0] != "sample" for request in self.queued)
 
 
 def _why(exc: Exception) -> str:

@@ -105,6 +105,7 @@ def test_trainer_samples_on_ray_with_one_worker_per_server(
         try:
             progress = trainer.run()
             collector = trainer.collector
+            assert collector.in_flight == 2  # type: ignore[union-attr]
             assert progress.episode >= 8
             assert progress.global_step >= 8 * 40  # 5 s episodes (or fewer on a crash)
             assert progress.updates > 0  # learning started: the policy copies acted

@@ -26,7 +26,7 @@ def transition(value: float) -> Transition:
 
 @dataclass
 class FakeWorkers:
-    """Workers that answer at once: `steps` transitions per chunk, numbered by worker."""
+    """Workers that answer at once: `steps` transitions per chunk, numbered by ask."""
 
     steps: int = 3
     asked: list[tuple[int, Any]] = field(default_factory=list)
@@ -43,8 +43,9 @@ class FakeWorkers:
         return dict(policy_state)
 
     def ask(self, index: int, n_steps: int, settings: Settings, policy: Any | None) -> None:
+        number = len(self.asked)  # its transitions carry the ask's number
         self.asked.append((index, policy))
-        chunk = Chunk(transitions=[transition(index) for _ in range(self.steps)])
+        chunk = Chunk(transitions=[transition(number) for _ in range(self.steps)])
         self.answers.setdefault(index, []).append(chunk)
 
     def drop_episodes(self, index: int) -> None:
@@ -122,6 +123,31 @@ def test_with_two_in_flight_a_drop_discards_every_answer_asked_before_it() -> No
     chunks.send()
     assert len(workers.asked) == 8
     assert len(chunks.receive().transitions) == 6
+
+
+def test_after_a_drop_the_answers_asked_before_it_go_and_the_later_ones_count() -> None:
+    workers = FakeWorkers()
+    chunks = collector(workers, in_flight=2)
+    chunks.send()  # asks 0, 1 of worker 0; 2, 3 of worker 1
+    assert asked_numbers(chunks.receive()) == [0, 2]
+    chunks.drop_episodes()  # 1 and 3 were asked before it
+    chunks.send()  # 4 of worker 0, 5 of worker 1
+    assert asked_numbers(chunks.receive()) == [4, 5]  # none due now
+    chunks.send()  # 6, 7 and 8, 9
+    assert asked_numbers(chunks.receive()) == [6, 8]
+    chunks.drop_episodes()
+    chunks.drop_episodes()  # twice: still only 7 and 9 were asked before
+    chunks.send()  # 10, 11
+    assert asked_numbers(chunks.receive()) == [10, 11]
+
+
+def asked_numbers(collected: Collected) -> list[int]:
+    return sorted({int(t.u) for t in collected.transitions})
+
+
+def test_in_flight_must_be_at_least_one() -> None:
+    with pytest.raises(ValueError, match="in_flight must be at least 1, got 0"):
+        collector(FakeWorkers(), in_flight=0)
 
 
 def test_a_failed_worker_is_named_with_its_server() -> None:
