@@ -181,7 +181,7 @@ class TrainConfig:
     chunks_in_flight: int = 1
     """sampling = processes or ray: requests each worker has at a time (2: it starts its next
     chunk as soon as it sends one, not when the learner, done with its updates, asks again;
-    7-8 % more env steps/s, measured not to pay on cf seeds: docs/learner.md)."""
+    7-10 % more env steps/s, measured not to pay on cf seeds: docs/learner.md)."""
     policy_sync_every: int = 500
     """sampling = processes or ray: transitions between two refreshes of the workers' policy
     copies."""

@@ -173,8 +173,9 @@ def test_close_ends_a_long_chunk_and_the_worker_says_goodbye(fake_server: Runnin
 def test_a_drop_ends_the_chunk_in_hand_and_the_one_asked_ahead(
     fake_server: RunningServer,
 ) -> None:
-    """Two chunks of 10^7 steps in flight, then a drop: the worker ends the one in hand and
-    the one asked ahead after a step each (the learner discards both), then samples anew."""
+    """Two chunks of 10^7 steps in flight, then a drop: the worker ends the one in hand after
+    its step and answers the one asked ahead at once (the learner discards both), then samples
+    anew."""
     workers = ProcessWorkers()
     collector = ChunkCollector(
         workers, [worker_spec(fake_server.address)], lambda: greedy_policy(),
