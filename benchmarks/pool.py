@@ -116,7 +116,7 @@ def measure(
     for sampling in args.sampling:
         trained = training(
             [pool_address] * args.pool, args.scenario, args.seconds, sampling,
-            settings=[parse_assignment(text) for text in args.set],
+            settings=args.settings,
         )  # fmt: skip
         rate = trained["train_env_steps_per_s"]
         row[f"training_{sampling}"] = rate
@@ -151,6 +151,7 @@ def main() -> int:
         parser.error(str(exc))
     if any("sampling" in assignment for assignment in settings):
         parser.error("--set sampling=...: use --sampling (each kind is a row of its own)")
+    args.settings = settings
 
     pool, pool_address = start_server(args.backend, "--pool", str(args.pool))
     plain, plain_address = start_server(args.backend)

@@ -264,8 +264,9 @@ class TrainConfig:
             "chunks_in_flight",
             "policy_sync_every",
         ):
-            if getattr(self, name) < 1:
-                raise UsageError(f"{name} must be at least 1, got {getattr(self, name)}")
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise UsageError(f"{name} must be a whole number of at least 1, got {value!r}")
         self._check_sampling()
         parse_device(self.device)  # a typo now, not when the trainer starts
         if self.eval_budget is not None and not self.eval_budget > 0:

@@ -22,6 +22,7 @@ NOBODY = "tcp://127.0.0.1:9"  # the discard port: nothing answers there
         (["train", "--set", "nosuch=1"], ["'nosuch'", "episodes"]),
         (["train", "--set", "noequals"], ["noequals", "KEY=VALUE"]),
         (["train", "--set", "episodes=0"], ["episodes", "at least 1"]),
+        (["train", "--set", "chunks_in_flight=x"], ["chunks_in_flight", "whole number", "'x'"]),
         (["train", "--set", "features=typo"], ["'typo'", "cf", "lc"]),
         (["train", "--config", "missing.toml"], ["missing.toml"]),
         (["train", "--resume", "no/such/run"], ["no/such/run"]),
