@@ -208,7 +208,7 @@ def test_evaluations_stay_one_ego_in_the_same_session(
 def test_many_egos_with_ray_sampling_are_refused() -> None:
     with pytest.raises(UsageError, match="egos 4 needs sampling = local"):
         apply_overrides(TrainConfig(), {"egos": 4, "sampling": "ray"})
-    with pytest.raises(UsageError, match="egos must be at least 1"):
+    with pytest.raises(UsageError, match="egos must be a whole number of at least 1, got 0"):
         apply_overrides(TrainConfig(), {"egos": 0})
     assert apply_overrides(TrainConfig(), {"egos": 1, "sampling": "ray"}).egos == 1
 
