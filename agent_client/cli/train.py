@@ -101,9 +101,8 @@ def add_parser(commands: Commands) -> None:
         help="local: this process steps every --server at once; processes: one sampling "
         "process per --server, each with a copy of the policy, while the learner updates; "
         "ray: the same workers as Ray actors (docs/ray.md); auto (default): processes where "
-        "there is one ego per simulation, each server's worker has a core beside the "
-        "learner's and evaluations have servers of their own (always with --simulators), "
-        "else local",
+        "there is one ego per simulation, two cores or more with up to two servers per core, "
+        "and evaluations on servers of their own (always with --simulators), else local",
     )
     train.add_argument(
         "--ray-address",

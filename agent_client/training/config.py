@@ -34,6 +34,10 @@ SAMPLING_KINDS = ("auto", "local", "processes", "ray")
 (`agent_client.training.chunks`) in processes of their own or on Ray; auto chooses between the
 first two (`TrainConfig.sampling_on`)."""
 
+SERVERS_PER_CORE = 2
+"""Up to this many training servers per core, `auto` samples in processes: measured faster
+than lock-step at 1 to 2 per core, learner included (docs/learner.md, "Sampling")."""
+
 
 if TYPE_CHECKING:
     from agent_client.rl.rewards import RewardFn
@@ -283,15 +287,17 @@ class TrainConfig:
     def sampling_on(self, servers: int, evaluation_servers: int, cores: int | None = None) -> str:
         """The sampling a run on `servers` training servers uses: `sampling` itself, or for
         auto a sampling process per server where the servers are free for them (one ego per
-        simulation; evaluations on servers of their own, or none) and each worker with its
-        simulator has a core beside the learner's, else local (docs/learner.md, "Sampling")."""
+        simulation; evaluations on servers of their own, or none) and the learner has a core
+        beside theirs, with up to `SERVERS_PER_CORE` servers per core, else local
+        (docs/learner.md, "Sampling")."""
         if self.sampling != "auto":
             return self.sampling
         if self.simulators:
             return "processes"
         cores = usable_cores() if cores is None else cores
         free = self.eval_every == 0 or evaluation_servers > 0
-        return "processes" if self.egos == 1 and free and cores >= servers + 1 else "local"
+        fits = cores >= 2 and servers <= SERVERS_PER_CORE * cores
+        return "processes" if self.egos == 1 and free and fits else "local"
 
     def reward_fn(self) -> RewardFn:
         """The reward `reward` with `reward_params`; `UsageError` naming a bad parameter."""

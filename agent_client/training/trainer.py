@@ -5,22 +5,16 @@ its next command, runs the gradient updates due while the simulators compute, th
 the replies become transitions in one replay buffer. Updating while the simulator steps is what
 lets the learner keep up with it (docs/learner.md, "Speed"). Who steps the servers is the
 collector's business: this process in lock-step (`collect`), or a sampling worker per server in
-a process of its own or on Ray (`chunks`). When to evaluate is the `EvaluationSchedule`'s
-(`schedule`); what an evaluation is judged against, the `Reference`'s (`reference`).
+a process of its own or on Ray (`chunks`). When and where the policy is evaluated, and what
+its verdicts make of the run (the best policy, convergence), is `evaluations`' business.
 
 With ``egos`` > 1 every server runs simulations of that many egos, all driven by the one shared
 policy, every ego's steps feeding the one buffer (`agent_client.training.multi_collect`); the
 evaluations stay one-ego episodes.
 
-Greedy evaluations on held-out seeds judge the policy against a reference driver (IDM, or IDM +
-MOBIL where lanes change: `TrainConfig.reference`) and the leader-at-entry ceiling; with several
-scenarios, each on seeds of its own, against its own reference figures. On servers of their own
-(`eval_servers`) they run in the background, in the kernel's idle scheduling class, while training
-goes on: an evaluation is read at the next multiple of `eval_every`, where the next may be due, and
-one that could complete convergence runs while training waits, so the run (episodes, verdicts, the
-converged episode) is the one `eval_while_training` off gives, where every evaluation blocks.
-Without them they run inline on the training servers. Checkpoints make a run resumable; with one
-training server the same seed and configuration give the same run (a sampling worker's
+What stays here: building the run, the loop, resilience (a lost server is waited for, a failed
+simulator episode replaced), checkpoints and signals. Checkpoints make a run resumable; with
+one training server the same seed and configuration give the same run (a sampling worker's
 exploration noise starts afresh on a resumed one).
 """
 
@@ -28,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import signal
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -49,14 +42,11 @@ from agent_client.drivers.spec import load_driver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
 from agent_client.errors import (
-    BridgeError,
     FeatureMismatch,
     ServerError,
     ServerUnavailable,
     UsageError,
 )
-from agent_client.evaluation.metrics import EpisodeSummary, aggregate
-from agent_client.evaluation.targets import FailureScreen
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LANE_COMMANDS
@@ -74,7 +64,7 @@ from agent_client.training.collect import (
 )
 from agent_client.training.config import TrainConfig
 from agent_client.training.eval_pool import EvaluationPool
-from agent_client.training.evaluator import EvaluationJob, Evaluator
+from agent_client.training.evaluations import Evaluations, TrainingSide
 from agent_client.training.exploration import WarmupDriver, learning, noise_scale_at
 from agent_client.training.multi_collect import (
     EgoSlot,
@@ -87,11 +77,9 @@ from agent_client.training.progress import (
     Progress,
     QuietReporter,
     Reporter,
-    evaluation_line,
 )
 from agent_client.training.reference import Reference
 from agent_client.training.run_log import RunLog
-from agent_client.training.schedule import EvaluationSchedule
 from protocol.messages import ROAD_RANGE, Observation, Road
 from protocol.version import ROAD_VERSION
 
@@ -205,7 +193,6 @@ class Trainer:
         ]
         self.figures = Reference(eval_seeds, self.env.scenario_for)
         """The reference's figures on the evaluation seeds (a seed picks its scenario)."""
-        self.schedule = EvaluationSchedule(config)
         warmup = config.warmup_policy
         if warmup == "auto":
             warmup = "idm+mobil" if self.scale.residual else "random"
@@ -228,12 +215,18 @@ class Trainer:
         self._actor_learned = False
         """The actor has had an update (a residual policy's waits for its burn-in)."""
         self._failures_in_a_row = 0
-        self._restored_evaluation: dict[str, Any] | None = None
-        """A resumed run's evaluation that was under way when it stopped (`_running_evaluation`)."""
-        self._pending: EvaluationJob | None = None
-        """The evaluation running in the background (its verdict due at episode
-        ``context["collect_at"]``; IDM's baseline before the first policy evaluation)."""
         self._started = time.monotonic()
+        training = TrainingSide(
+            envs=self.vec.envs, resilient=self._resilient,
+            drop_episodes=self.collector.drop_episodes, policy_state=self._policy_state,
+            trained=self._actor_trained, driver=self._driver, save_policy=self._save_policy,
+            elapsed=lambda: time.monotonic() - self._started, one_lane=self._one_lane,
+        )  # fmt: skip
+        self.evaluations = Evaluations(
+            config, self.out, self.reference, self.figures, self.eval_pool, training,
+            self.profile, lambda text: self.say(text), self.retry_for_s,
+        )  # fmt: skip
+        """When the policy is evaluated, where, and what its verdicts make of the run."""
 
     def _make_collector(self) -> LocalCollector | MultiEgoCollector | ChunkCollector:
         """Who steps the training servers (`self.sampling`): this process in lock-step (one
@@ -299,12 +292,12 @@ class Trainer:
                 self._prepare(log)
                 self._episodes_started = self.progress.episode
                 while not self._finished():
-                    self._poll_background()
+                    self.evaluations.poll()
                     for slot in self._resilient(self._iteration):
                         if self.progress.episode < self.config.episodes:  # a chunk brings several
                             self._episode_done(slot, log)
-                if self._pending is not None and not self._interrupted:
-                    self._collect(log)
+                if self.evaluations.pending is not None and not self._interrupted:
+                    self.evaluations.collect()
             if isinstance(self.collector, ChunkCollector):  # the servers are this process's again
                 self.collector.release(self.env.timeout_s)
         finally:
@@ -317,9 +310,7 @@ class Trainer:
                 (self.out / "profile.json").write_text(json.dumps(self.profile.to_dict(), indent=2))
                 log.close()
             finally:
-                self._pending = None
-                if self.eval_pool is not None:
-                    self.eval_pool.cancel()
+                self.evaluations.cancel()
                 if isinstance(self.collector, ChunkCollector):  # a failed run: no worker left
                     self.collector.close()
         self.say(self.profile.line())
@@ -347,27 +338,13 @@ class Trainer:
         if limit is not None and time.monotonic() - self._started > 60 * limit:
             self.say(f"stopping at the time limit of {limit:g} min")
             self._stop_requested = True
-        return self._stop_requested or self.progress.episode >= self.config.episodes
+        stop = self._stop_requested or self.evaluations.converged
+        return stop or self.progress.episode >= self.config.episodes
 
     def _prepare(self, log: RunLog) -> None:
         """The reference's evaluation (on the evaluation servers, else the training ones), an
         evaluation a resumed run had under way, pre-training."""
-        if not self.figures.known and self.config.eval_every > 0:
-            servers = len(self.eval_servers or self.vec.envs)
-            job = EvaluationJob("idm", self.reference, self.figures.seeds)
-            name = f"the reference ({getattr(self.reference, 'name', 'a policy')})"
-            if self._background():
-                self.say(f"evaluating {name} in the background ({servers} servers)")
-                self._start_background(job)
-            else:
-                self.say(f"evaluating {name} on the evaluation seeds ({servers} servers)")
-                summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
-                self._book_reference(summaries)
-            self.collector.drop_episodes()
-        running = self._restored_evaluation
-        if running is not None:  # it was under way when the run stopped
-            self._evaluate(self._policy_job(running["policy_state"], running["context"]), log)
-            self._restored_evaluation = None  # a checkpoint before this keeps it
+        self.evaluations.begin(self.progress, log)
         if self.config.pretrain_idm and self.progress.global_step == 0:
             self._resilient(self._pretrain)
 
@@ -488,32 +465,6 @@ class Trainer:
                 self._drop_running()
                 self.say(f"the simulator failed ({exc}); starting new episodes")
 
-    def _resilient_evaluation(self, work: Callable[[], T]) -> T:
-        """`_resilient` for work on the evaluation servers: a failure there reconnects or
-        restarts only their workers, and training's episodes go on."""
-        pool = self.eval_pool
-        if pool is None:  # inline: the evaluation uses the training servers
-            return self._resilient(work)
-        failures = 0  # the same policy on the same seeds: a failure that repeats is not luck
-        while True:
-            try:
-                return work()
-            except ServerUnavailable as exc:
-                failures += 1
-                if self.retry_for_s <= 0 or failures >= MAX_FAILURES_IN_A_ROW:
-                    raise
-                self.say(f"{exc}; waiting up to {self.retry_for_s:g} s for the evaluation servers")
-                pool.reconnect(self.retry_for_s)
-                self.progress.reconnects += 1
-                addresses = ", ".join(self.eval_servers)
-                self.say(f"reconnected to {addresses}; the evaluation starts again")
-            except ServerError as exc:
-                failures += 1
-                if exc.code not in EPISODE_FAILURES or failures >= MAX_FAILURES_IN_A_ROW:
-                    raise
-                self.progress.failed_episodes += 1
-                self.say(f"the simulator failed in an evaluation ({exc}); it starts again")
-
     def _drop_running(self) -> None:
         """Forget the training episodes under way (a background evaluation the failure ended
         runs again, from its start, when its verdict is due)."""
@@ -529,13 +480,9 @@ class Trainer:
         row = self._episode_row(slot)
         log.episode(row)
         self.reporter.episode(row)
-        pending = None if self._interrupted else self._pending  # Ctrl-C: no more waiting
-        if pending is not None and progress.episode >= pending.context.get("collect_at", math.inf):
-            self._collect(log)  # before the next is due: its verdict decides when that one runs
         collided = int(row["collisions"]) > 0
         learning = progress.global_step >= self.config.learner.learning_starts
-        if self.schedule.episode_ended(progress, collided, learning) and not self._interrupted:
-            self._start_policy_evaluation(log)
+        self.evaluations.episode_ended(collided, learning, interrupted=self._interrupted)
         if progress.episode % self.config.checkpoint_every == 0:
             self._checkpoint()
 
@@ -589,186 +536,21 @@ class Trainer:
             self.agent.update(self.buffer.sample(cfg.learner.batch_size), actor=False)
         self.say(f"pre-training: actor fitted to {len(states)} {name} actions (MSE {loss:.4f})")
 
-    # ----------------------------------------------------------------------- evaluation
+    # ----------------------------------------------------------------------- the policy
 
     def _policy_state(self) -> dict[str, Any]:
         return self.agent.policy_state_dict(self.config.deploy_averaged)
 
-    def _start_policy_evaluation(self, log: RunLog) -> None:
-        """Evaluate the current policy: in the background, its verdict read where the next
-        evaluation may be due, or now while training waits (inline, with `eval_while_training`
-        off, or when a pass would complete convergence)."""
-        if self._pending is not None:  # IDM's baseline, or a verdict due at this episode
-            self._collect(log)
-        progress = self.progress
-        context = {
-            "episode": progress.episode,
-            "global_step": progress.global_step,
-            "trained": self._actor_trained(),
-            "collect_at": self.schedule.started(progress),  # its verdict must be known there
-        }
-        self._evaluate(self._policy_job(self._policy_state(), context), log)
-
-    def _evaluate(self, job: EvaluationJob, log: RunLog) -> None:
-        """Start policy evaluation `job` in the background, or run and book it now."""
-        if self._background() and not self.schedule.could_converge(self.progress):
-            self._start_background(job)
-            return
-        summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
-        if not self.eval_servers:
-            self.collector.drop_episodes()  # the evaluation used the training servers
-        self._evaluation_done(job, summaries, log)
+    def _driver(self, policy_state: dict[str, Any]) -> PolicyDriver:
+        return PolicyDriver(
+            Policy.from_state_dict(policy_state), self.features, self.scale, self.lanes
+        )
 
     def _actor_trained(self) -> bool:
         """Whether the policy has learned anything yet: a residual policy's actor waits for its
         burn-in, and until then it drives as its reference, whose passes say nothing of what
         was learned (they do not count towards convergence)."""
         return not self.scale.residual or self._actor_learned
-
-    def _policy_job(self, state: dict[str, Any], context: dict[str, Any]) -> EvaluationJob:
-        """The evaluation of policy `state` on the held-out seeds (`context`: the episode and
-        the env step it was taken at, and where its verdict is due)."""
-        driver = PolicyDriver(Policy.from_state_dict(state), self.features, self.scale, self.lanes)
-        screen = self._screen() if self.config.eval_screen else None
-        context = {**context, "policy_state": state,
-                   "evaluation_seconds_before": self.profile.evaluation_seconds}  # fmt: skip
-        return EvaluationJob(
-            "policy", driver, self.figures.seeds, context, stop_on_collision=True, screen=screen
-        )
-
-    def _screen(self) -> FailureScreen:
-        """What stops an evaluation that has certainly failed (`Reference.screen`): the
-        scenario's time limit bounds an episode's steps (the env's options, as the server has
-        them)."""
-        options = self.env.scenario_options
-        limit = _number(options.get("max_episode_time"))
-        interval = _number(options.get("decision_interval"))
-        max_steps = math.ceil(limit / interval) + 10 if limit and interval else None
-        return self.figures.screen(max_steps, self._one_lane)
-
-    def _background(self) -> bool:
-        """Whether evaluations run in the background (on evaluation servers of their own)."""
-        return self.eval_pool is not None and self.config.eval_while_training
-
-    def _start_background(self, job: EvaluationJob) -> None:
-        """Hand `job` to the pool's workers (training waits while they take its driver)."""
-        pool = self.eval_pool
-        assert pool is not None
-        with self._training_waits(job):
-            self._resilient_evaluation(lambda: pool.start(job))
-        self._pending = job
-
-    def _poll_background(self) -> None:
-        """Let the background evaluation's workers have their next seeds. A failure there gives
-        the evaluation up; it runs again, training waiting, when its verdict is due."""
-        pool = self.eval_pool
-        if pool is None or pool.job is None:
-            return
-        started = time.perf_counter()
-        try:
-            pool.poll()
-        except BridgeError as exc:  # the pool has stopped the job's episodes
-            self.say(f"the background evaluation failed ({exc}); it runs again when due")
-        finally:
-            self.profile.seconds["evaluation"] += time.perf_counter() - started
-
-    def _collect(self, log: RunLog) -> None:
-        """Wait for the background evaluation's end and book its verdict."""
-        job = self._pending
-        assert job is not None
-        summaries = self._resilient_evaluation(lambda: self._evaluate_blocking(job))
-        self._pending = None
-        self._evaluation_done(job, summaries, log)
-
-    def _evaluate_blocking(self, job: EvaluationJob) -> list[EpisodeSummary]:
-        """Run `job` to its end (or wait for its end, if it runs in the background) while
-        training waits: on the evaluation servers' workers, else in lock-step on the training
-        servers."""
-        with self._training_waits(job):
-            if self.eval_pool is None:
-                return Evaluator(self.vec.envs).run(job)
-            if self.eval_pool.job is job:
-                return self.eval_pool.finish()
-            return self.eval_pool.run(job)  # from its start: a failure ended it in the background
-
-    @contextmanager
-    def _training_waits(self, job: EvaluationJob) -> Iterator[None]:
-        """Book the time training waits for `job` (IDM's baseline apart, too)."""
-        started = time.perf_counter()
-        try:
-            yield
-        finally:
-            waited = time.perf_counter() - started
-            self.profile.blocking_evaluation += waited
-            if job.name == "idm":
-                self.profile.baseline_evaluation += waited
-
-    def _book_reference(self, summaries: list[EpisodeSummary]) -> None:
-        """Keep the reference's figures on the evaluation seeds (and in idm_eval.json)."""
-        overall = self.figures.book(summaries)
-        (self.out / "idm_eval.json").write_text(json.dumps(overall, indent=2))
-
-    def _evaluation_done(
-        self, job: EvaluationJob, summaries: list[EpisodeSummary], log: RunLog
-    ) -> None:
-        if job.name == "idm":
-            self._book_reference(summaries)
-            return
-        result = aggregate(summaries)
-        met, failed_scenarios = self.figures.targets(summaries)
-        if job.stopped is not None:  # failed for certain, whatever the partial figures say
-            met[job.stopped] = False
-        complete = len(summaries) == len(job.seeds)
-        # The learner's seconds from this job's start: all of it if training waited, else the
-        # polls and the wait for its end.
-        seconds = self.profile.evaluation_seconds - job.context["evaluation_seconds_before"]
-        steps = sum(s.steps for s in summaries)
-        progress = self.progress
-        progress.evaluation_steps += steps
-        progress.wall_time = time.monotonic() - self._started
-        passes = complete and all(met.values()) and job.context.get("trained", True)
-        self.schedule.judged(progress, passes, steps, job.context["global_step"])
-        ratio = result["speed_ratio_to_ceiling"]  # NaN where no ceiling is reported (the ring)
-        score = sum(met.values()) + (ratio if math.isfinite(ratio) else 0.0)
-        if complete and score >= progress.best_score:  # a stopped one's figures are partial
-            progress.best_score = score
-            self._save_policy("policy.pt", job.context["policy_state"])
-        evaluation = {
-            "episode": job.context["episode"],
-            "global_step": job.context["global_step"],
-            "wall_time": progress.wall_time,
-            **result,
-            "speed_ratio_to_idm": result["average_speed"] / self.figures.speed_on(summaries),
-            **{f"target_{name}": passed for name, passed in met.items()},
-            "passed_in_a_row": progress.passed_in_a_row,
-            "trained": job.context.get("trained", True),
-            "stopped": job.stopped or "",
-            "failed_scenarios": failed_scenarios if len(self.config.scenarios) > 1 else "",
-            "episodes_saved": len(job.seeds) - len(summaries),
-            "steps": steps,
-            "seconds": seconds,
-            "evaluation_share": self.profile.evaluation_share(),
-        }
-        progress.evaluations.append(evaluation)
-        log.evaluation(evaluation)
-        self.say(evaluation_line(evaluation))
-        self._check_convergence()
-
-    def _check_convergence(self) -> None:
-        progress = self.progress
-        if not self.schedule.converged(progress):
-            return
-        if progress.converged_episode is None:
-            progress.converged_episode = progress.episode
-            progress.converged_time = progress.wall_time
-            progress.converged_step = progress.global_step
-            self.say(
-                f"converged: {self.config.converged_evals} passing evaluations in a row at "
-                f"episode {progress.episode} ({progress.wall_time / 60:.1f} min, "
-                f"{progress.global_step} steps)"
-            )
-        if self.config.stop_when_converged:
-            self._stop_requested = True
 
     # ----------------------------------------------------------------------- files
 
@@ -783,21 +565,9 @@ class Trainer:
             "progress": _plain(dataclasses.asdict(self.progress)),
             **self.figures.state_dict(),
             "config": self.config.to_dict(),
-            "running_evaluation": self._running_evaluation(),
+            "running_evaluation": self.evaluations.running(),
         }
         save_checkpoint(self.out / "checkpoint.pt", state)
-
-    def _running_evaluation(self) -> dict[str, Any] | None:
-        """The policy evaluation under way in the background (its policy and context), which a
-        resumed run starts again: else it would resume without the verdict blocking gives."""
-        job = self._pending
-        if job is None and self._restored_evaluation is not None:  # not started again yet
-            return self._restored_evaluation
-        if job is None or job.name != "policy":
-            return None  # IDM's baseline runs again anyway: the checkpoint has none
-        keep = ("episode", "global_step", "collect_at")
-        return {"policy_state": job.context["policy_state"],
-                "context": {key: job.context[key] for key in keep}}  # fmt: skip
 
     def _restore(self) -> None:
         state = load_checkpoint(self.out / "checkpoint.pt")
@@ -818,7 +588,7 @@ class Trainer:
         self.figures.load_state_dict(state, self.config.scenarios[0])
         running = state.get("running_evaluation")
         if running is not None and self.figures.known and self.config.eval_every > 0:
-            self._restored_evaluation = running
+            self.evaluations.restored = running
         self.say(
             f"resumed {self.out} at episode {self.progress.episode}, "
             f"step {self.progress.global_step}, {len(self.buffer)} transitions in the buffer"
@@ -841,13 +611,6 @@ class Trainer:
         finally:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
-
-
-def _number(value: object) -> float | None:
-    """An option's number (None for a missing or non-numeric one)."""
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        return float(value)
-    return None
 
 
 def _offers(env: RemoteEnv, option: str) -> bool:

@@ -197,7 +197,10 @@ def test_a_bad_real_roads_setting_is_a_usage_error_naming_it(
     ("settings", "servers", "evaluation_servers", "cores", "sampling"),
     [
         ({}, 1, 1, 2, "processes"),  # the plain command: a core for the learner, one for SUMO
-        ({}, 2, 1, 2, "local"),  # two simulators and the learner on two cores: lock-step
+        ({}, 2, 1, 2, "processes"),  # two simulators and the learner on two cores
+        ({}, 4, 1, 2, "processes"),
+        ({}, 5, 1, 2, "local"),  # more than two servers per core: lock-step
+        ({}, 2, 1, 1, "local"),  # one core: the learner has none of its own
         ({}, 14, 1, 16, "processes"),
         ({}, 1, 0, 2, "local"),  # evaluations on the training server: it must stay here
         ({"eval_every": 0}, 1, 0, 2, "processes"),

@@ -150,7 +150,7 @@ def test_a_resumed_run_starts_again_the_evaluation_that_was_running_when_it_stop
         trainer = Trainer(config, fake_server.address, tmp_path, timeout_s=5.0,
                           eval_servers=[evaluate.address])  # fmt: skip
         started: list[dict[str, Any]] = []
-        start = trainer._start_background
+        start = trainer.evaluations.start_background
 
         def stop_after_the_first(job: Any, start: Any = start) -> None:
             """Ctrl-C right after the first policy evaluation went to the background."""
@@ -160,7 +160,7 @@ def test_a_resumed_run_starts_again_the_evaluation_that_was_running_when_it_stop
                 trainer.request_stop()
                 trainer._interrupted = True  # as the signal handler does
 
-        trainer._start_background = stop_after_the_first  # type: ignore[method-assign]
+        trainer.evaluations.start_background = stop_after_the_first  # type: ignore[method-assign]
         try:
             trainer.run()
         finally:
