@@ -51,7 +51,6 @@ from agent_client.training.config import (
     apply_overrides,
     parse_assignment,
 )
-from agent_client.training.progress import Profile
 from agent_client.training.trainer import QuietReporter, Trainer
 from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
@@ -127,7 +126,7 @@ class Clock(QuietReporter):
         now = time.perf_counter()
         if self.measuring_since is None and trainer.progress.updates > 100:
             self.measuring_since = now  # learning has begun and the update is compiled
-            trainer.profile = Profile()  # the profile of the measured iterations only
+            trainer.profile.reset()  # the profile of the measured iterations only
         if self.measuring_since is not None:
             self.marks.append((now, trainer.progress.global_step, trainer.progress.updates))
             if now - self.measuring_since > self.seconds:

@@ -19,15 +19,18 @@ a core and its CPU time per env step, by role (`benchmarks/cpu_use.py`), and how
 machine's cores were busy.
 
     python benchmarks/pool.py --pool 2 --seconds 30 [--cpu] [--set chunks_in_flight=2]
+    python benchmarks/pool.py --pool 14 --seconds 20 --sampling processes --device cpu cuda
 
-`--set` hands a training setting on to every training measurement (a variant to compare with
-the defaults, in a run of its own: the ratio is to that run's drivers).
+`--device` names the learner's devices, a training measurement each (the GPU machine's run:
+scripts/device_check.sh). `--set` hands a training setting on to every training measurement (a
+variant to compare with the defaults, in a run of its own: the ratio is to that run's drivers).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import multiprocessing
 import os
@@ -113,19 +116,26 @@ def measure(
         print(describe("independent IDM drivers (this process's children)", use), flush=True)
     lock_step = stepping([pool_address] * args.pool, args.scenario, args.seconds)
     row["lock_step"] = lock_step["env_steps_per_s"]
-    for sampling in args.sampling:
+    for sampling, device in itertools.product(args.sampling, args.device):
         trained = training(
-            [pool_address] * args.pool, args.scenario, args.seconds, sampling,
+            [pool_address] * args.pool, args.scenario, args.seconds, sampling, device,
             settings=args.settings,
         )  # fmt: skip
         rate = trained["train_env_steps_per_s"]
-        row[f"training_{sampling}"] = rate
-        row[f"training_{sampling}_updates_per_s"] = trained["updates_per_s"]
+        name = training_key(sampling, device)
+        row[name] = rate
+        row[f"{name}_updates_per_s"] = trained["updates_per_s"]
         if cpu is not None:  # the first second after learning began may hold the load's end
             use = cpu.table(trained["timed_from"] + 1.0, trained["timed_to"] - 1.0, rate)
-            row[f"cpu_training_{sampling}"] = use
-            print(describe(f"training, sampling {sampling}", use), flush=True)
+            row[f"cpu_{name}"] = use
+            print(describe(f"training, sampling {sampling}, learner on {device}", use), flush=True)
     return row
+
+
+def training_key(sampling: str, device: str) -> str:
+    """The row of a training measurement: ``training_processes`` on the CPU (as before there
+    was a device to choose), ``training_processes_cuda`` on a GPU."""
+    return f"training_{sampling}" if device == "cpu" else f"training_{sampling}_{device}"
 
 
 def main() -> int:
@@ -137,6 +147,9 @@ def main() -> int:
     parser.add_argument(
         "--sampling", nargs="+", default=["local", "processes"], help="training's sampling kinds"
     )
+    parser.add_argument(
+        "--device", nargs="+", default=["cpu"], help="the learner's devices (cpu, cuda, ...)"
+    )
     parser.add_argument("--cpu", action="store_true", help="where the CPU went, by process")
     parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="for every training"
@@ -145,12 +158,13 @@ def main() -> int:
     args = parser.parse_args()
     try:  # a typo now, not minutes in
         settings = [parse_assignment(text) for text in args.set]
-        for assignment in settings:
+        for assignment in [*settings, *({"device": device} for device in args.device)]:
             apply_overrides(TrainConfig(), assignment)
     except UsageError as exc:
         parser.error(str(exc))
-    if any("sampling" in assignment for assignment in settings):
-        parser.error("--set sampling=...: use --sampling (each kind is a row of its own)")
+    for option in ("sampling", "device"):
+        if any(option in assignment for assignment in settings):
+            parser.error(f"--set {option}=...: use --{option} (each is a row of its own)")
     args.settings = settings
 
     pool, pool_address = start_server(args.backend, "--pool", str(args.pool))
@@ -172,8 +186,9 @@ def main() -> int:
           f"{row['one_client_pool'] / row['one_client_plain']:.2f} of plain |")  # fmt: skip
     rows = [("independent_idm", f"{args.pool} independent IDM drivers"),
             ("lock_step", f"lock-step vector env of {args.pool}")]  # fmt: skip
-    rows += [(f"training_{kind}", f"training over {args.pool} sessions, sampling {kind}")
-             for kind in args.sampling]  # fmt: skip
+    rows += [(training_key(kind, device),
+              f"training over {args.pool} sessions, sampling {kind}, learner on {device}")
+             for kind, device in itertools.product(args.sampling, args.device)]  # fmt: skip
     for name, label in rows:
         print(f"| {label} | {row[name]:.0f} | {row[name] / independent_rate:.2f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,6 @@ sys.path.insert(0, str(ROOT))
 import torch
 
 from agent_client.training.config import TrainConfig, apply_overrides, parse_assignment
-from agent_client.training.progress import Profile
 from agent_client.training.trainer import QuietReporter, Trainer
 from protocol.readiness import LISTENING, NotReady, stop_process, wait_for_line
 
@@ -61,7 +60,7 @@ class Clock(QuietReporter):
         now = time.perf_counter()
         if self.since is None and trainer.progress.updates > MEASURE_AFTER_UPDATES:
             self.since = now
-            trainer.profile = Profile()  # the measured iterations only
+            trainer.profile.reset()  # the measured iterations only
         if self.since is not None:
             self.marks.append((now, trainer.progress.global_step, trainer.progress.updates))
             if now - self.since > self.seconds:

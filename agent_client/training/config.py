@@ -287,9 +287,9 @@ class TrainConfig:
     def sampling_on(self, servers: int, evaluation_servers: int, cores: int | None = None) -> str:
         """The sampling a run on `servers` training servers uses: `sampling` itself, or for
         auto a sampling process per server where the servers are free for them (one ego per
-        simulation; evaluations on servers of their own, or none) and the learner has a core
-        beside theirs, with up to `SERVERS_PER_CORE` servers per core, else local
-        (docs/learner.md, "Sampling")."""
+        simulation; evaluations on servers of their own, or none) on two cores or more (the
+        learner is not alone with them on one), up to `SERVERS_PER_CORE` servers per core;
+        else local (docs/learner.md, "Sampling")."""
         if self.sampling != "auto":
             return self.sampling
         if self.simulators:

@@ -1,13 +1,15 @@
 """A training run's evaluations: the reference's once, then the policy's, and their verdicts.
 
-`EvaluationSchedule` says at which episode's end a policy evaluation starts; this room runs it
-and books what it found. On evaluation servers of their own (`EvaluationPool`) an evaluation
-runs in the background while training goes on, its verdict read at the episode where the next
-may be due; one that could complete convergence, and every one without such servers (inline,
-on the training servers) or with `eval_while_training` off, runs while training waits. So the
-run (episodes, verdicts, the converged episode) is the same either way. Each verdict is judged
-against the reference's figures on the same seeds (`Reference`), keeps the best policy so far
-(`policy.pt`), and counts towards convergence.
+`EvaluationSchedule` says at which episode's end a policy evaluation starts; this module runs
+it and books what it found. On evaluation servers of their own (`EvaluationPool`) an evaluation
+runs in the background while training goes on, its workers in the kernel's idle scheduling
+class, its verdict read at the episode where the next may be due; one that could complete
+convergence, and every one without such servers (inline, on the training servers) or with
+`eval_while_training` off, runs while training waits. So the run (episodes, verdicts, the
+converged episode) is the same either way. Each verdict is judged against the reference's
+figures on the same seeds (`Reference`; with several scenarios, each on seeds of its own,
+against its own figures), keeps the best policy so far (`policy.pt`), and counts towards
+convergence.
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from agent_client.drivers.episode import Driver
-from agent_client.drivers.policy import PolicyDriver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError, ServerError, ServerUnavailable
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate
@@ -60,7 +61,7 @@ class TrainingSide:
     trained: Callable[[], bool]
     """Whether the policy has learned anything yet (a residual's actor waits for its burn-in:
     until then it drives as its reference, and its passes do not count)."""
-    driver: Callable[[dict[str, Any]], PolicyDriver]
+    driver: Callable[[dict[str, Any]], Driver]
     """The driver of a policy state."""
     save_policy: Callable[[str, dict[str, Any]], None]
     """Save a policy state under a name in the run folder."""
@@ -107,8 +108,18 @@ class Evaluations:
         self.pending: EvaluationJob | None = None
         """The evaluation running in the background (its verdict due at episode
         ``context["collect_at"]``; the reference's before the first policy evaluation)."""
-        self._progress = Progress()
-        self._log: RunLog | None = None
+        self._run_state: tuple[Progress, RunLog] | None = None
+        """The run's progress and log (`begin`)."""
+
+    @property
+    def _progress(self) -> Progress:
+        assert self._run_state is not None, "begin() first"
+        return self._run_state[0]
+
+    @property
+    def _log(self) -> RunLog:
+        assert self._run_state is not None, "begin() first"
+        return self._run_state[1]
 
     @property
     def background(self) -> bool:
@@ -121,7 +132,7 @@ class Evaluations:
         """Book into the run's `progress` (a resumed run's, restored) and `log` from now on;
         evaluate the reference first if its figures are not known yet (the training episodes
         under way are dropped after it), then an evaluation a resumed run had under way."""
-        self._progress, self._log = progress, log
+        self._run_state = progress, log
         if not self.figures.known and self.config.eval_every > 0:
             servers = len(self.pool.workers if self.pool is not None else self.training.envs)
             job = EvaluationJob("idm", self.reference, self.figures.seeds)
@@ -137,6 +148,11 @@ class Evaluations:
         if running is not None:  # it was under way when the run stopped
             self._evaluate(self._policy_job(running["policy_state"], running["context"]))
             self.restored = None  # a checkpoint before this keeps it
+
+    def resume(self, running: dict[str, Any]) -> None:
+        """A resumed run's checkpoint had `running` under way (`running()`): `begin` starts it
+        again (until then, a checkpoint keeps it)."""
+        self.restored = running
 
     def poll(self) -> None:
         """Let the background evaluation's workers have their next seeds. A failure there gives
@@ -168,7 +184,7 @@ class Evaluations:
         assert job is not None
         summaries = self._resilient(lambda: self._run(job))
         self.pending = None
-        self._done(job, summaries)
+        self._book(job, summaries)
 
     def cancel(self) -> None:
         """Give the background evaluation up (the run ends without its verdict)."""
@@ -221,7 +237,7 @@ class Evaluations:
         summaries = self._resilient(lambda: self._run(job))
         if self.pool is None:
             self.training.drop_episodes()  # the evaluation used the training servers
-        self._done(job, summaries)
+        self._book(job, summaries)
 
     def _policy_job(self, state: dict[str, Any], context: dict[str, Any]) -> EvaluationJob:
         """The evaluation of policy `state` on the held-out seeds (`context`: the episode and
@@ -304,7 +320,7 @@ class Evaluations:
         overall = self.figures.book(summaries)
         (self.out / "idm_eval.json").write_text(json.dumps(overall, indent=2))
 
-    def _done(self, job: EvaluationJob, summaries: list[EpisodeSummary]) -> None:
+    def _book(self, job: EvaluationJob, summaries: list[EpisodeSummary]) -> None:
         """Book `job`'s verdict: the reference's figures, or the policy's evaluation (its row
         in the log, the best policy so far, convergence)."""
         if job.name == "idm":
@@ -344,8 +360,7 @@ class Evaluations:
             "evaluation_share": self.profile.evaluation_share(),
         }
         progress.evaluations.append(evaluation)
-        if self._log is not None:
-            self._log.evaluation(evaluation)
+        self._log.evaluation(evaluation)
         self.say(evaluation_line(evaluation))
         self._check_convergence()
 

@@ -66,6 +66,13 @@ class Profile:
     baseline_evaluation: float = 0.0
     """Of `blocking_evaluation`, the seconds of the IDM baseline's evaluation."""
 
+    def reset(self) -> None:
+        """Count afresh from now (a benchmark's measured iterations only), in place: whoever
+        holds this profile (the trainer, its evaluations) goes on counting into it."""
+        self.seconds = dict.fromkeys(PHASES, 0.0)
+        self.iterations = 0
+        self.blocking_evaluation = self.baseline_evaluation = 0.0
+
     @property
     def total(self) -> float:
         return sum(self.seconds.values()) + self.blocking_evaluation

@@ -222,6 +222,7 @@ class Trainer:
             trained=self._actor_trained, driver=self._driver, save_policy=self._save_policy,
             elapsed=lambda: time.monotonic() - self._started, one_lane=self._one_lane,
         )  # fmt: skip
+        # `say` is looked up at each call: a caller may replace the trainer's
         self.evaluations = Evaluations(
             config, self.out, self.reference, self.figures, self.eval_pool, training,
             self.profile, lambda text: self.say(text), self.retry_for_s,
@@ -588,7 +589,7 @@ class Trainer:
         self.figures.load_state_dict(state, self.config.scenarios[0])
         running = state.get("running_evaluation")
         if running is not None and self.figures.known and self.config.eval_every > 0:
-            self.evaluations.restored = running
+            self.evaluations.resume(running)
         self.say(
             f"resumed {self.out} at episode {self.progress.episode}, "
             f"step {self.progress.global_step}, {len(self.buffer)} transitions in the buffer"

@@ -384,8 +384,10 @@ def test_with_eval_while_training_off_evaluations_block_on_their_own_server(
         sim_server("--backend", "sumo", cache_dir=scenario_cache) as second,
         sim_server("--backend", "sumo", cache_dir=scenario_cache) as evaluate,
     ):
+        # lock-step: the trainer's own connections reset the training episodes, and are watched
         config = fast_config(episodes=8, eval_every=2, eval_episodes=2, eval_gate=0,
-                             eval_budget=None, eval_while_training=False)  # fmt: skip
+                             eval_budget=None, eval_while_training=False,
+                             sampling="local")  # fmt: skip
         trainer = Trainer(
             config, [first.address, second.address], tmp_path, eval_servers=[evaluate.address]
         )
@@ -415,6 +417,7 @@ def test_with_eval_while_training_off_evaluations_block_on_their_own_server(
     held_out = set(range(config.eval_seed, config.eval_seed + config.eval_episodes))
     # Every evaluation, the IDM baseline's too, ran on the evaluation server alone.
     trained = {name: [s for s in seeds[name] if s not in held_out] for name in seeds}
+    assert seeds["train0"] and seeds["train1"]
     assert trained["train0"] == seeds["train0"] and trained["train1"] == seeds["train1"]
     # No training episode was cut short to make room for an evaluation: on each training
     # server every episode but the one under way at the end ran to its end (inline on the
