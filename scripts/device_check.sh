@@ -1,29 +1,46 @@
 #!/usr/bin/env bash
 # Issue 35's GPU check, run on the lent 16-core GPU machine from the repository root, with the
-# kit scripts/device_kit.sh packed into .device/ carried along: unpacks it (no package index
-# there), checks that SUMO, ZeroMQ and torch with CUDA import, then measures in one run, over a
-# `sim-server --pool N` of SUMO `cf` simulators, N independent IDM drivers against the learner
-# with sampling processes, on the CPU and on the GPU (benchmarks/pool.py). Writes the JSON and
-# the log under $OUT (the device tool's folder that comes back), else runs/device/.
+# kit that scripts/device_kit.sh packed into .device/ carried along:
+#
+#   1. unpacks the kit (there is no package index there) and puts it on the paths;
+#   2. smoke test, a few seconds: a SUMO sim-server and one IDM episode through it (fails fast,
+#      before the long part, where a library is missing);
+#   3. says what the machine has (cores, GPU, torch and whether it sees CUDA);
+#   4. over a `sim-server --pool N` of SUMO `cf` simulators, N independent IDM drivers against
+#      the learner sampling in processes, on the CPU and on the GPU (benchmarks/pool.py).
+#
+# Writes the JSON and the logs under $OUT (the device tool's folder that comes back), else
+# runs/device/.
 #
 #     bash scripts/device_check.sh [POOL] [SECONDS]     (default: 14 simulators, 20 s each)
+#
+# PYTHON names the interpreter (default python3: the machine's 3.12, with its CUDA torch).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 POOL=${1:-14}
 SECONDS_EACH=${2:-20}
+PYTHON=${PYTHON:-python3}
 KIT=$PWD/.device
 OUT=${OUT:-$PWD/runs/device}
 STAGE=$(mktemp -d)
-trap 'rm -rf "$STAGE"' EXIT
+SERVER=
+cleanup() {
+    [ -n "$SERVER" ] && kill "$SERVER" 2>/dev/null
+    rm -rf "$STAGE"
+}
+trap cleanup EXIT
 mkdir -p "$OUT"
-[ -d "$KIT" ] || { echo "no $KIT: run bash scripts/device_kit.sh first, then carry .device" >&2; exit 2; }
+if [ ! -d "$KIT" ]; then
+    echo "device_check: no $KIT: run bash scripts/device_kit.sh here first, and carry .device" >&2
+    exit 2
+fi
 
-echo "== unpacking the kit"
+echo "== 1. unpacking the kit"
 mkdir -p "$STAGE/site"
 tar -xJf "$KIT/libsumo.tar.xz" -C "$STAGE/site"
 for wheel in "$KIT"/wheels/*.whl; do
-    python3 -m zipfile -e "$wheel" "$STAGE/site"
+    "$PYTHON" -m zipfile -e "$wheel" "$STAGE/site"
 done
 CACHE="${XDG_CACHE_HOME:-$HOME/.cache}/av-bridge/scenarios"
 mkdir -p "$CACHE"
@@ -31,20 +48,40 @@ cp -r "$KIT/scenarios/." "$CACHE/"
 export PYTHONPATH="$PWD:$STAGE/site${PYTHONPATH:+:$PYTHONPATH}"
 export LD_LIBRARY_PATH="$KIT/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 
-echo "== what this machine has"
-nproc
+echo "== 2. smoke test: a SUMO server and one IDM episode through it"
+"$PYTHON" -m sim_server.cli --bind tcp://127.0.0.1:0 --backend sumo --log-level WARNING \
+    > "$STAGE/server.out" 2> "$OUT/smoke-server.log" &
+SERVER=$!
+ADDRESS=
+for _ in $(seq 600); do  # the readiness line, within 60 s
+    ADDRESS=$(sed -n 's/^listening on //p' "$STAGE/server.out")
+    [ -n "$ADDRESS" ] && break
+    kill -0 "$SERVER" 2>/dev/null || break
+    sleep 0.1
+done
+if [ -z "$ADDRESS" ]; then
+    echo "device_check: the SUMO server did not start:" >&2
+    cat "$OUT/smoke-server.log" >&2
+    exit 1
+fi
+"$PYTHON" -m agent_client drive --server "$ADDRESS" --scenario cf --policy idm --episodes 1
+kill "$SERVER"
+wait "$SERVER" 2>/dev/null || true
+SERVER=
+
+echo "== 3. what this machine has"
+echo "cores: $(nproc)"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
-python3 - <<'PY'
+"$PYTHON" - <<'PY'
 import platform
 
-import libsumo  # noqa: F401
 import torch
-import zmq
 
-print(f"python {platform.python_version()}, torch {torch.__version__}, zmq {zmq.zmq_version()}")
-print(f"cuda: {torch.cuda.is_available()} {torch.cuda.get_device_name(0) if torch.cuda.is_available() else ''}")
+cuda = torch.cuda.is_available()
+name = torch.cuda.get_device_name(0) if cuda else "none"
+print(f"python {platform.python_version()}, torch {torch.__version__}, CUDA GPU: {name}")
 PY
 
-echo "== pool of $POOL: independent IDM drivers, then the learner on cpu and cuda"
-python3 benchmarks/pool.py --pool "$POOL" --seconds "$SECONDS_EACH" --sampling processes \
+echo "== 4. a pool of $POOL: independent IDM drivers, then the learner on cpu and on cuda"
+"$PYTHON" benchmarks/pool.py --pool "$POOL" --seconds "$SECONDS_EACH" --sampling processes \
     --device cpu cuda --cpu --out "$OUT/pool-$POOL-gpu-machine.json" 2>&1 | tee "$OUT/pool.log"

@@ -86,7 +86,6 @@ def test_the_reference_is_evaluated_first_and_its_figures_kept(
         log.close()
     assert runs.figures.known and (tmp_path / "idm_eval.json").exists()
     assert recorder.dropped == 1  # the training episodes under way did not see it
-    assert runs.pending is None  # inline: booked while training waited
 
 
 def test_policy_evaluations_start_on_schedule_book_their_verdicts_and_converge(
@@ -125,4 +124,23 @@ def test_an_interrupted_run_starts_no_evaluation(env: RemoteEnv, tmp_path: Path)
             runs.episode_ended(collided=False, learning=True, interrupted=True)
     finally:
         log.close()
-    assert progress.evaluations == [] and runs.running() is None
+    assert progress.evaluations == []
+
+
+def test_a_resumed_runs_evaluation_is_kept_until_it_has_run_again(
+    env: RemoteEnv, tmp_path: Path
+) -> None:
+    recorder, progress = Recorder(), Progress()
+    runs = evaluations(env, tmp_path, recorder)
+    running = {"policy_state": {"label": "saved"},
+               "context": {"episode": 7, "global_step": 700, "collect_at": 8}}  # fmt: skip
+    runs.resume(running)
+    assert runs.running() == running  # a checkpoint before it runs keeps it
+    log = RunLog(tmp_path)
+    try:
+        runs.begin(progress, log)
+    finally:
+        log.close()
+    assert [(e["episode"], e["global_step"]) for e in progress.evaluations] == [(7, 700)]
+    assert runs.running() is None
+    assert recorder.saved == ["policy.pt:saved"]  # the first verdict is the best so far
