@@ -37,8 +37,7 @@ if [ ! -d "$KIT" ]; then
 fi
 
 echo "== 1. unpacking the kit"
-mkdir -p "$STAGE/site"
-tar -xJf "$KIT/libsumo.tar.xz" -C "$STAGE/site"
+tar -xJf "$KIT/sumo.tar.xz" -C "$STAGE"  # site/ (libsumo) and lib/ (X and GL libraries)
 for wheel in "$KIT"/wheels/*.whl; do
     "$PYTHON" -m zipfile -e "$wheel" "$STAGE/site"
 done
@@ -46,7 +45,7 @@ CACHE="${XDG_CACHE_HOME:-$HOME/.cache}/av-bridge/scenarios"
 mkdir -p "$CACHE"
 cp -r "$KIT/scenarios/." "$CACHE/"
 export PYTHONPATH="$PWD:$STAGE/site${PYTHONPATH:+:$PYTHONPATH}"
-export LD_LIBRARY_PATH="$KIT/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+export LD_LIBRARY_PATH="$STAGE/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 
 echo "== 2. smoke test: a SUMO server and one IDM episode through it"
 "$PYTHON" -m sim_server.cli --bind tcp://127.0.0.1:0 --backend sumo --log-level WARNING \

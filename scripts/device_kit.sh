@@ -7,10 +7,14 @@
 #     bash scripts/device_kit.sh
 #     run(command="bash scripts/device_check.sh", carry=[".device"], timeout_s=540)
 #
-# In it: the cp312 wheels of what the machine lacks; libsumo's, unpacked, stripped of debug
-# symbols and packed with xz (86 MB as a wheel, too much to carry); the X and GL libraries
-# libsumo links and the machine lacks, from this Debian machine; the built scenarios (the
-# machine has no netconvert: the cache is keyed by the files' content, so they are reused).
+# In it (about 50 MB: with the repository's own files, what a device call may carry is 64 MiB):
+# - wheels/: the cp312 wheels of what the machine lacks (it has numpy, msgpack, cloudpickle);
+# - sumo.tar.xz: libsumo's wheel unpacked (86 MB as a wheel), its libraries stripped of what
+#   the dynamic linker does not read, the four BLAS/LAPACK builds it bundles (for GDAL's and
+#   Armadillo's sake: network import, never the simulation) made one, OpenBLAS, by links; and
+#   lib/, the X and GL libraries libsumo links that the machine lacks, from this Debian machine;
+# - scenarios/: the built cf and cflc (no netconvert there; the cache is keyed by the files'
+#   content, so they are reused).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -23,13 +27,13 @@ trap 'rm -rf "$SCRATCH"' EXIT
 version() { "$PYTHON" -c "import importlib.metadata as m; print(m.version('$1'))"; }
 
 rm -rf "$KIT"
-mkdir -p "$KIT/wheels" "$KIT/lib" "$KIT/scenarios"
+mkdir -p "$KIT/wheels" "$KIT/scenarios"
 mkdir -p .git/info
 grep -qxF "/$KIT/" .git/info/exclude 2>/dev/null || echo "/$KIT/" >> .git/info/exclude
 
 echo "== wheels for Python 3.12"
 PACKAGES=()
-for name in libsumo traci sumolib pyzmq msgspec msgpack gymnasium cloudpickle farama-notifications; do
+for name in libsumo traci sumolib pyzmq msgspec gymnasium farama-notifications; do
     PACKAGES+=("$name==$(version "$name")")
 done
 "$PYTHON" -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 \
@@ -37,18 +41,24 @@ done
     --platform manylinux2014_x86_64 -d "$SCRATCH/wheels" "${PACKAGES[@]}"
 mv "$SCRATCH"/wheels/*.whl "$KIT/wheels/"
 
-echo "== libsumo, stripped and packed"
-mkdir -p "$SCRATCH/libsumo"
-"$PYTHON" -m zipfile -e "$KIT"/wheels/libsumo-*.whl "$SCRATCH/libsumo"
+echo "== libsumo and the system libraries it needs, stripped and packed"
+SITE="$SCRATCH/sumo/site"
+mkdir -p "$SITE" "$SCRATCH/sumo/lib"
+"$PYTHON" -m zipfile -e "$KIT"/wheels/libsumo-*.whl "$SITE"
 rm "$KIT"/wheels/libsumo-*.whl
-find "$SCRATCH/libsumo" -name "*.so*" -type f -exec strip --strip-debug {} +
-tar -C "$SCRATCH/libsumo" -cf - . | xz -9 -T0 > "$KIT/libsumo.tar.xz"
-
-echo "== system libraries libsumo needs"
+find "$SITE" -name "*.so*" -type f -exec strip --strip-unneeded {} +
+(
+    cd "$SITE/libsumo.libs"
+    openblas=$(ls libopenblasp-r0-*.so)
+    for other in libopenblaso-r0-*.so libsatlas-*.so.* liblapack-*.so.* libblas-*.so.*; do
+        ln -sf "$openblas" "$other"
+    done
+)
 for lib in libX11.so.6 libXext.so.6 libXrender.so.1 libGL.so.1 libGLX.so.0 libGLdispatch.so.0 \
     libxcb.so.1 libXau.so.6 libXdmcp.so.6 libbsd.so.0 libmd.so.0 libatomic.so.1; do
-    cp -L "/lib/x86_64-linux-gnu/$lib" "$KIT/lib/"
+    cp -L "/lib/x86_64-linux-gnu/$lib" "$SCRATCH/sumo/lib/"
 done
+tar -C "$SCRATCH/sumo" -cf - . | xz -9 -T0 > "$KIT/sumo.tar.xz"
 
 echo "== built scenarios"
 "$PYTHON" - "$KIT/scenarios" <<'PY'
