@@ -125,6 +125,7 @@ def measure(
         name = training_key(sampling, device)
         row[name] = rate
         row[f"{name}_updates_per_s"] = trained["updates_per_s"]
+        row[f"{name}_sampling"] = trained["sampling"]  # what auto resolved to
         if cpu is not None:  # the first second after learning began may hold the load's end
             use = cpu.table(trained["timed_from"] + 1.0, trained["timed_to"] - 1.0, rate)
             row[f"cpu_{name}"] = use
