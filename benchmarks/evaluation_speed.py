@@ -31,8 +31,8 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.drivers.policy import load_policy_driver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError
-from agent_client.training.eval_pool import EvaluationPool
-from agent_client.training.evaluator import EvaluationJob, Evaluator
+from agent_client.training.evaluations.inline import EvaluationJob, Evaluator
+from agent_client.training.evaluations.pool import EvaluationPool
 from benchmarks.learning import start_servers
 from protocol.readiness import stop_process
 

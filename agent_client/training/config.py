@@ -27,12 +27,12 @@ from typing import TYPE_CHECKING, Any
 from agent_client.defaults import DEFAULT_SCENARIO, TRAINING_EVALUATION_SEED, TRAINING_SEED
 from agent_client.errors import UsageError
 from agent_client.rl.td3 import TD3Config, parse_device
-from agent_client.training.cores import usable_cores
+from agent_client.training.sampling.cores import usable_cores
 
 SAMPLING_KINDS = ("auto", "local", "processes", "ray")
 """Where training episodes run: lock-step in the learner's process, or sampling workers
-(`agent_client.training.chunks`) in processes of their own or on Ray; auto chooses between the
-first two (`TrainConfig.sampling_on`)."""
+(`agent_client.training.sampling.chunks`) in processes of their own or on Ray; auto chooses
+between the first two (`TrainConfig.sampling_on`)."""
 
 SERVERS_PER_CORE = 2
 """Up to this many training servers per core, `auto` samples in processes: measured faster

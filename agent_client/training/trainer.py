@@ -4,12 +4,13 @@ One learner, one or more remote simulators. Each iteration has its collector sen
 its next command, runs the gradient updates due while the simulators compute, then receives:
 the replies become transitions in one replay buffer. Updating while the simulator steps is what
 lets the learner keep up with it (docs/learner.md, "Speed"). Who steps the servers is the
-collector's business: this process in lock-step (`collect`), or a sampling worker per server in
-a process of its own or on Ray (`chunks`). When and where the policy is evaluated, and what
-its verdicts make of the run (the best policy, convergence), is `evaluations`' business.
+collector's business: this process in lock-step (`sampling.collect`), or a sampling worker per
+server in a process of its own or on Ray (`sampling.chunks`). When and where the policy is
+evaluated, and what its verdicts make of the run (the best policy, convergence), is
+`evaluations.runner`'s business.
 
 With ``egos`` > 1 every server runs simulations of that many egos, all driven by the one shared
-policy, every ego's steps feeding the one buffer (`agent_client.training.multi_collect`); the
+policy, every ego's steps feeding the one buffer (`agent_client.training.sampling.many_egos`); the
 evaluations stay one-ego episodes.
 
 What stays here: building the run, the loop, resilience (a lost server is waited for, a failed
@@ -54,32 +55,32 @@ from agent_client.rl.policy import Policy
 from agent_client.rl.replay import ReplayBuffer
 from agent_client.rl.rewards import TRAFFIC_REWARDS, q_upper_bound
 from agent_client.rl.td3 import Agent, resolve_device
-from agent_client.training.chunks import ChunkCollector, chunk_collector
-from agent_client.training.collect import (
-    EPISODE_FAILURES,
-    MAX_FAILURES_IN_A_ROW,
-    Collected,
-    LocalCollector,
-    Slot,
-)
 from agent_client.training.config import TrainConfig
-from agent_client.training.eval_pool import EvaluationPool
-from agent_client.training.evaluations import Evaluations, TrainingSide
-from agent_client.training.exploration import WarmupDriver, learning, noise_scale_at
-from agent_client.training.multi_collect import (
-    EgoSlot,
-    MultiEgoCollector,
-    MultiEgoLink,
-    batch_by_ego,
-)
+from agent_client.training.evaluations.pool import EvaluationPool
+from agent_client.training.evaluations.reference import Reference
+from agent_client.training.evaluations.runner import Evaluations, TrainingSide
 from agent_client.training.progress import (
     Profile,
     Progress,
     QuietReporter,
     Reporter,
 )
-from agent_client.training.reference import Reference
 from agent_client.training.run_log import RunLog
+from agent_client.training.sampling.chunks import ChunkCollector, chunk_collector
+from agent_client.training.sampling.collect import (
+    EPISODE_FAILURES,
+    MAX_FAILURES_IN_A_ROW,
+    Collected,
+    LocalCollector,
+    Slot,
+)
+from agent_client.training.sampling.exploration import WarmupDriver, learning, noise_scale_at
+from agent_client.training.sampling.many_egos import (
+    EgoSlot,
+    MultiEgoCollector,
+    MultiEgoLink,
+    batch_by_ego,
+)
 from protocol.messages import ROAD_RANGE, Observation, Road
 from protocol.version import ROAD_VERSION
 

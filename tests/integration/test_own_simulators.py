@@ -21,7 +21,7 @@ from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError
 from agent_client.training import simulators
 from agent_client.training.run_log import read_rows
-from agent_client.training.sampler import SamplingWorker, Settings
+from agent_client.training.sampling.worker import SamplingWorker, Settings
 from agent_client.training.simulators import (
     OwnSimulator,
     SimulatorFailed,

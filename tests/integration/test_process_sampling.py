@@ -19,13 +19,18 @@ from agent_client.envs.remote_env import RemoteEnv
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.greedy import NumpyActor
 from agent_client.rl.td3 import Agent, TD3Config
-from agent_client.training.chunks import ChunkCollector
-from agent_client.training.collect import LocalCollector, Slot, Transition
 from agent_client.training.config import TrainConfig
-from agent_client.training.exploration import noise_scale_at
-from agent_client.training.process_collect import ProcessWorkers
 from agent_client.training.run_log import read_rows
-from agent_client.training.sampler import SamplingFailed, Settings, WorkerSpec, policy_arrays
+from agent_client.training.sampling.chunks import ChunkCollector
+from agent_client.training.sampling.collect import LocalCollector, Slot, Transition
+from agent_client.training.sampling.exploration import noise_scale_at
+from agent_client.training.sampling.process_workers import ProcessWorkers
+from agent_client.training.sampling.worker import (
+    SamplingFailed,
+    Settings,
+    WorkerSpec,
+    policy_arrays,
+)
 from agent_client.training.trainer import Trainer
 from tests.conftest import RunningServer, sim_server
 from tests.integration.test_ray_sampling import ray_config

@@ -12,7 +12,7 @@ import torch
 
 from agent_client.errors import UsageError
 from agent_client.training.config import TrainConfig, apply_overrides
-from agent_client.training.sampler import SamplingWorker, Settings, WorkerSpec
+from agent_client.training.sampling.worker import SamplingWorker, Settings, WorkerSpec
 from agent_client.training.trainer import Trainer
 from tests.conftest import RunningServer, sim_server
 

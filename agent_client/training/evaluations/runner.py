@@ -28,14 +28,14 @@ from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError, ServerError, ServerUnavailable
 from agent_client.evaluation.metrics import EpisodeSummary, aggregate
 from agent_client.evaluation.targets import FailureScreen
-from agent_client.training.collect import EPISODE_FAILURES, MAX_FAILURES_IN_A_ROW
 from agent_client.training.config import TrainConfig
-from agent_client.training.eval_pool import EvaluationPool
-from agent_client.training.evaluator import EvaluationJob, Evaluator
+from agent_client.training.evaluations.inline import EvaluationJob, Evaluator
+from agent_client.training.evaluations.pool import EvaluationPool
+from agent_client.training.evaluations.reference import Reference
+from agent_client.training.evaluations.schedule import EvaluationSchedule
 from agent_client.training.progress import Profile, Progress, evaluation_line
-from agent_client.training.reference import Reference
 from agent_client.training.run_log import RunLog
-from agent_client.training.schedule import EvaluationSchedule
+from agent_client.training.sampling.collect import EPISODE_FAILURES, MAX_FAILURES_IN_A_ROW
 
 T = TypeVar("T")
 

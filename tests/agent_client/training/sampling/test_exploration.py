@@ -7,9 +7,9 @@ import pytest
 
 from agent_client.drivers.episode import Episode
 from agent_client.drivers.policy import ActionScale
-from agent_client.training.collect import Slot
 from agent_client.training.config import TrainConfig, apply_overrides
-from agent_client.training.exploration import WarmupDriver, learning, noise_scale_at
+from agent_client.training.sampling.collect import Slot
+from agent_client.training.sampling.exploration import WarmupDriver, learning, noise_scale_at
 from tests.agent_client.rl.test_rewards import lead, make_obs
 
 SCALE = ActionScale(-6.0, 3.0)

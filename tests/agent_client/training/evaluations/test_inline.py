@@ -12,7 +12,7 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.evaluation.metrics import aggregate
 from agent_client.evaluation.targets import FailureScreen, targets_met
-from agent_client.training.evaluator import EvaluationJob, Evaluator
+from agent_client.training.evaluations.inline import EvaluationJob, Evaluator
 from protocol.messages import Observation
 from tests.agent_client.conformance.toys import ToyServer, zero_reward
 from tests.agent_client.transport.servers import DirectToy

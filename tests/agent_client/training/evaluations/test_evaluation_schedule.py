@@ -12,9 +12,9 @@ from typing import Any
 import pytest
 
 from agent_client.errors import UsageError
-from agent_client.training import reference as reference_module
 from agent_client.training.config import TrainConfig, apply_overrides
-from agent_client.training.eval_pool import EvaluationPool
+from agent_client.training.evaluations import reference as reference_module
+from agent_client.training.evaluations.pool import EvaluationPool
 from agent_client.training.run_log import read_rows
 from agent_client.training.trainer import Trainer
 from tests.agent_client.training import short_runs

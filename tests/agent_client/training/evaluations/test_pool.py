@@ -32,9 +32,10 @@ from agent_client.evaluation.targets import FailureScreen
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LaneChoice
 from agent_client.rl.td3 import Agent, TD3Config
-from agent_client.training import eval_pool
-from agent_client.training.eval_pool import EvaluationPool
-from agent_client.training.eval_worker import (
+from agent_client.training.evaluations import pool as eval_pool
+from agent_client.training.evaluations.inline import EvaluationJob, Evaluator
+from agent_client.training.evaluations.pool import EvaluationPool
+from agent_client.training.evaluations.worker import (
     EvaluationWorkerFailed,
     Pipe,
     driver_from_message,
@@ -43,7 +44,6 @@ from agent_client.training.eval_worker import (
     raise_error,
     serve,
 )
-from agent_client.training.evaluator import EvaluationJob, Evaluator
 from protocol.messages import Observation, OptionValue
 from tests.agent_client.conformance.toys import ToyServer
 from tests.conftest import sim_server
@@ -160,7 +160,7 @@ def test_a_driver_a_worker_cannot_rebuild_is_refused_before_anything_runs(
 
 def test_a_worker_never_imports_torch() -> None:
     """What it drives with is plain numpy: a worker starts in a fraction of a second."""
-    code = "import sys, agent_client.training.eval_worker; print('torch' in sys.modules)"
+    code = "import sys, agent_client.training.evaluations.worker; print('torch' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                             timeout=60, check=True)  # fmt: skip
     assert result.stdout.strip() == "False"

@@ -38,7 +38,7 @@ from agent_client.envs.scenario import first_reply
 from agent_client.errors import MalformedReply, ServerError, UsageError
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
-from agent_client.training.collect import Chooser, Collected, Slot, Transition
+from agent_client.training.sampling.collect import Chooser, Collected, Slot, Transition
 from agent_client.transport.channel import Channel
 from agent_client.transport.replies import ReplyChecker, ego_observation
 from protocol.messages import (

@@ -3,8 +3,8 @@ into a send half and a receive half.
 
 The trainer sends every server its next command, runs its gradient updates while the servers
 simulate, and only then receives (`LocalCollector`). A `Collector` is anything with that shape:
-the same loop drives remote sampling workers (`agent_client.training.ray_collect`), which is the
-same idea at the scale of machines.
+the same loop drives remote sampling workers (`agent_client.training.sampling.ray_workers`),
+which is the same idea at the scale of machines.
 """
 
 from __future__ import annotations

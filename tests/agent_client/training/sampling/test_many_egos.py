@@ -16,15 +16,15 @@ from agent_client.drivers.policy import ActionScale
 from agent_client.errors import UsageError
 from agent_client.rl.features import FeatureMap
 from agent_client.rl.lanes import LaneChoice
-from agent_client.training.collect import Collected, Slot
 from agent_client.training.config import TrainConfig, apply_overrides
-from agent_client.training.multi_collect import (
+from agent_client.training.run_log import read_rows
+from agent_client.training.sampling.collect import Collected, Slot
+from agent_client.training.sampling.many_egos import (
     EgoSlot,
     MultiEgoCollector,
     MultiEgoLink,
     batch_by_ego,
 )
-from agent_client.training.run_log import read_rows
 from agent_client.training.trainer import Trainer
 from tests.agent_client.training import short_runs
 from tests.conftest import RunningServer

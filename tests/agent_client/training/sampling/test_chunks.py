@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agent_client.training.chunks import ChunkCollector
-from agent_client.training.collect import Collected, Slot, Transition
-from agent_client.training.sampler import Chunk, SamplingFailed, Settings
+from agent_client.training.sampling.chunks import ChunkCollector
+from agent_client.training.sampling.collect import Collected, Slot, Transition
+from agent_client.training.sampling.worker import Chunk, SamplingFailed, Settings
 from tests.integration.test_ray_sampling import spec
 
 

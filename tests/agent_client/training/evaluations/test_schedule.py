@@ -4,8 +4,8 @@ the collision gate and, after a failure, the budget's wait."""
 from __future__ import annotations
 
 from agent_client.training.config import TrainConfig
+from agent_client.training.evaluations.schedule import EvaluationSchedule
 from agent_client.training.progress import Progress
-from agent_client.training.schedule import EvaluationSchedule
 
 
 def drive(

@@ -1,7 +1,7 @@
 """Sampling workers as Ray actors: `RayWorkers`, the `Workers` group of ``sampling = "ray"``.
 
 One `SamplingWorker` actor per server (or per simulator it starts), wherever Ray places it;
-`ChunkCollector` (`agent_client.training.chunks`) asks them for chunks while the learner
+`ChunkCollector` (`agent_client.training.sampling.chunks`) asks them for chunks while the learner
 updates. With ``ray_address = ""`` a local Ray is started (bound to loopback) and stopped with
 the workers; ``"auto"`` joins the cluster this machine belongs to, ``"ray://HOST:10001"`` one
 through Ray Client (docs/ray.md). Needs ``pip install 'av-bridge[ray]'``.
@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from agent_client.errors import UsageError
-from agent_client.training.sampler import (
+from agent_client.training.sampling.worker import (
     Chunk,
     SamplingFailed,
     SamplingWorker,

@@ -11,9 +11,9 @@ update-to-data ratio holds and the policy a worker acts with is at most ``policy
 in_flight * sampling_chunk`` steps old (with one worker).
 
 Where the workers run is a `Workers` group: processes on this machine
-(`agent_client.training.process_collect`, ``sampling = "processes"``) or Ray actors wherever
-Ray places them (`agent_client.training.ray_collect`, ``sampling = "ray"``). Each worker is a
-`SamplingWorker` (`agent_client.training.sampler`).
+(`agent_client.training.sampling.process_workers`, ``sampling = "processes"``) or Ray actors
+wherever Ray places them (`agent_client.training.sampling.ray_workers`, ``sampling = "ray"``).
+Each worker is a `SamplingWorker` (`agent_client.training.sampling.worker`).
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError, UsageError
-from agent_client.training.collect import Collected
-from agent_client.training.exploration import learning, noise_scale_at
-from agent_client.training.sampler import Chunk, SamplingFailed, Settings, WorkerSpec
+from agent_client.training.sampling.collect import Collected
+from agent_client.training.sampling.exploration import learning, noise_scale_at
+from agent_client.training.sampling.worker import Chunk, SamplingFailed, Settings, WorkerSpec
 from protocol.messages import OptionValue
 
 if TYPE_CHECKING:
@@ -273,11 +273,11 @@ def chunk_collector(
 
     workers: Workers
     if sampling == "ray":
-        from agent_client.training.ray_collect import RayWorkers
+        from agent_client.training.sampling.ray_workers import RayWorkers
 
         workers = RayWorkers(config.ray_address)
     else:
-        from agent_client.training.process_collect import ProcessWorkers
+        from agent_client.training.sampling.process_workers import ProcessWorkers
 
         workers = ProcessWorkers()
     return ChunkCollector(

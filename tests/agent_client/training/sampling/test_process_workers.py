@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from agent_client.training.process_collect import Requests
+from agent_client.training.sampling.process_workers import Requests
 
 WAIT_S = 10.0
 

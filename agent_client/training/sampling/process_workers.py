@@ -30,7 +30,7 @@ from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
 from typing import Any
 
-from agent_client.training.sampler import (
+from agent_client.training.sampling.worker import (
     Chunk,
     SamplingFailed,
     SamplingWorker,

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from agent_client.evaluation.metrics import EpisodeSummary
-from agent_client.training.reference import Reference
+from agent_client.training.evaluations.reference import Reference
 from tests.agent_client.evaluation.test_targets import summary
 
 SEEDS = [100, 101, 102, 103]

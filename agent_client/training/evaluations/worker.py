@@ -1,12 +1,12 @@
 """One evaluation server's driver, in a process of its own: a worker of `EvaluationPool`.
 
-``python -m agent_client.training.eval_worker`` talks to the learner over its stdin and stdout in
-the direct transport's frames (a 4-byte length, then a msgpack map; no pickle). It connects to
-one evaluation server, then drives the episodes it is given one at a time with IDM, IDM + MOBIL
-or a policy (its weights come in the message: the worker never imports torch), and answers each
-with the episode's summary. While an episode runs it says it is alive every `ALIVE_EVERY_S` and
-looks for a stop every `STOP_POLL_STEPS` steps, so the learner can tell a hung worker from a
-long episode and end an evaluation that has failed at once.
+``python -m agent_client.training.evaluations.worker`` talks to the learner over its stdin and
+stdout in the direct transport's frames (a 4-byte length, then a msgpack map; no pickle). It
+connects to one evaluation server, then drives the episodes it is given one at a time with IDM,
+IDM + MOBIL or a policy (its weights come in the message: the worker never imports torch), and
+answers each with the episode's summary. While an episode runs it says it is alive every
+`ALIVE_EVERY_S` and looks for a stop every `STOP_POLL_STEPS` steps, so the learner can tell a
+hung worker from a long episode and end an evaluation that has failed at once.
 
 Messages are maps with an ``op``. The learner's requests carry an ``id``: ``connect`` (the
 server, the scenario or scenarios, the reward and the reset options), ``reconnect``,

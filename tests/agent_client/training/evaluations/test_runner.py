@@ -12,11 +12,11 @@ import pytest
 
 from agent_client.drivers.idm import IDMDriver
 from agent_client.envs.remote_env import RemoteEnv
-from agent_client.training import reference as reference_module
 from agent_client.training.config import TrainConfig, apply_overrides
-from agent_client.training.evaluations import Evaluations, TrainingSide
+from agent_client.training.evaluations import reference as reference_module
+from agent_client.training.evaluations.reference import Reference
+from agent_client.training.evaluations.runner import Evaluations, TrainingSide
 from agent_client.training.progress import Profile, Progress
-from agent_client.training.reference import Reference
 from agent_client.training.run_log import RunLog, read_rows
 from tests.conftest import RunningServer
 

@@ -15,7 +15,7 @@ from agent_client.drivers.idm import IDMDriver
 from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.drivers.policy import ActionScale
 from agent_client.rl.lanes import LANE_COMMANDS
-from agent_client.training.collect import Slot
+from agent_client.training.sampling.collect import Slot
 
 if TYPE_CHECKING:  # not at run time: a sampling worker process never imports torch
     from agent_client.training.config import TrainConfig

@@ -3,9 +3,9 @@
 Where training waits for an evaluation, one client driving two servers in lock-step keeps three
 processes busy on two cores, and the client's share of every step (choosing the action,
 checking the reply, scoring it) is the slowest link. With a worker process per server
-(`agent_client.training.eval_worker`) each pair of client and server steps on its own, and the
-same episodes run 1.4-1.5x as fast on the 2-core VM (docs/learner.md, "Evaluations during
-training").
+(`agent_client.training.evaluations.worker`) each pair of client and server steps on its own,
+and the same episodes run 1.4-1.5x as fast on the 2-core VM (docs/learner.md, "Evaluations
+during training").
 
 Seeds are handed out in order to whichever worker is free, and the failure screen judges the
 finished episodes in seed order (`judge_in_order`), as the lock-step evaluator does: the same
@@ -33,8 +33,13 @@ from typing import Any
 from agent_client.defaults import RESET_TIMEOUT_S, STEP_TIMEOUT_S
 from agent_client.errors import BridgeError, ServerLost, ServerTimeout
 from agent_client.evaluation.metrics import EpisodeSummary
-from agent_client.training.eval_worker import ALIVE_EVERY_S, Pipe, driver_message, raise_error
-from agent_client.training.evaluator import EvaluationJob, judge_in_order
+from agent_client.training.evaluations.inline import EvaluationJob, judge_in_order
+from agent_client.training.evaluations.worker import (
+    ALIVE_EVERY_S,
+    Pipe,
+    driver_message,
+    raise_error,
+)
 from protocol.messages import OptionValue
 
 log = logging.getLogger(__name__)
@@ -49,7 +54,7 @@ class _WorkerProcess:
     def __init__(self, address: str, write_timeout_s: float) -> None:
         self.address = address
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "agent_client.training.eval_worker"],
+            [sys.executable, "-m", "agent_client.training.evaluations.worker"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             # A group of its own (a Ctrl-C to the terminal is the learner's), in the learner's

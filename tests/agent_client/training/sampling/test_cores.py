@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from agent_client.training.cores import cpu_quota, usable_cores
+from agent_client.training.sampling.cores import cpu_quota, usable_cores
 
 
 def write(path: Path, text: str) -> None:

@@ -2,10 +2,10 @@
 
 The worker is the trainer's own `LocalCollector` on one `RemoteEnv`, with a chooser of its own
 (`Exploration`: a numpy copy of the policy, its own exploration noise, the warm-up driver) in
-place of the trainer's agent. `ChunkCollector` (`agent_client.training.chunks`) runs one per
-sim-server, in a process of its own or as a Ray actor, and asks it for chunks of steps while the
-learner updates; the class itself needs neither, so tests can run it in-process. It never
-imports torch.
+place of the trainer's agent. `ChunkCollector` (`agent_client.training.sampling.chunks`) runs
+one per sim-server, in a process of its own or as a Ray actor, and asks it for chunks of steps
+while the learner updates; the class itself needs neither, so tests can run it in-process. It
+never imports torch.
 """
 
 from __future__ import annotations
@@ -27,14 +27,14 @@ from agent_client.rl.greedy import NumpyActor, NumpyCritic
 from agent_client.rl.lanes import choose_lanes
 from agent_client.rl.noise import ActionNoise, make_noise
 from agent_client.rl.rewards import RewardFn
-from agent_client.training.collect import (
+from agent_client.training.sampling.collect import (
     EPISODE_FAILURES,
     MAX_FAILURES_IN_A_ROW,
     Collected,
     LocalCollector,
     Slot,
 )
-from agent_client.training.exploration import WarmupDriver
+from agent_client.training.sampling.exploration import WarmupDriver
 from agent_client.training.simulators import OwnSimulator
 from protocol.messages import OptionValue
 
