@@ -139,8 +139,8 @@ def run_one(
 
 def load_compiled_update(config: TrainConfig, out: Path, servers: int, verbose: bool) -> None:
     """A short run, not reported, before the timed ones: the first update of a process loads
-    the compiled update from the disk cache (~4 s, docs/learner.md), which the first timed run
-    would pay and the runs after it (and its rerun without evaluations) would not."""
+    the compiled update from the disk cache (~4 s, docs/learner-design.md), which the first timed
+    run would pay and the runs after it (and its rerun without evaluations) would not."""
     warm = apply_overrides(
         config,
         {"episodes": 6, "eval_every": 0, "stop_when_converged": False,

@@ -1,4 +1,4 @@
-"""Train a policy for the ring that damps its stop-and-go waves (docs/learner.md, at its end).
+"""Train a policy for the ring that damps its stop-and-go waves (docs/learner-design.md, its end).
 
 Starts its own ``sim-server --backend sumo`` on a free loopback port (waits for its readiness
 line, stops it at the end) and runs ``agent-client train`` on the ``ring`` scenario with the
@@ -13,7 +13,7 @@ and by default the recommended learner without its action cost (``action_l2`` pu
 normalised action to 0, which on the ego's bounds of -6 to 3 m/s^2 is braking at 1.5 m/s^2)
 and with a lighter smoothness term (1 instead of 5); ``--set learner.action_l2=0.1 --set
 learner.smoothness=5`` restores the recommended learner. What each trained, measured with
-`benchmarks/mixed_autonomy.py`: docs/learner.md, "Learning to damp the ring's waves".
+`benchmarks/mixed_autonomy.py`: docs/learner-design.md, "Learning to damp the ring's waves".
 
     python benchmarks/ring_training.py --egos 4 --minutes 14 --out runs/ring-policy/wave2-4ego
     python benchmarks/ring_training.py --egos 1 --out runs/ring-policy/wave-1ego \\
@@ -56,7 +56,7 @@ SETTINGS = (
     "learner.action_l2=0",
     "learner.smoothness=1",
 )
-"""``--set`` of the training run (docs/learner.md, "Learning to damp the ring's waves")."""
+"""``--set`` of the training run (docs/learner-design.md, "Learning to damp the ring's waves")."""
 
 
 def train_command(args: argparse.Namespace, address: str) -> list[str]:

@@ -2,7 +2,7 @@
 # Packs, into .device/, what the lent 16-core GPU machine needs to run our SUMO servers and
 # learner: it has Python 3.12 with a CUDA torch, numpy, scipy, matplotlib, tqdm and
 # tensorboard, and reaches no package index. Run here (with network to PyPI), then carry the
-# folder to the machine and run scripts/device_check.sh there (docs/learner.md, "On a GPU"):
+# folder to the machine and run scripts/device_check.sh there (docs/learner-design.md, "On a GPU"):
 #
 #     bash scripts/device_kit.sh
 #     run(command="bash scripts/device_check.sh", carry=[".device"], timeout_s=540)

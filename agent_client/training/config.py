@@ -36,7 +36,8 @@ between the first two (`TrainConfig.sampling_on`)."""
 
 SERVERS_PER_CORE = 2
 """Up to this many training servers per core, `auto` samples in processes: measured faster
-than lock-step at 1 to 2 per core, learner included (docs/learner.md, "Sampling")."""
+than lock-step at 1 to 2 per core, learner included (docs/learner-design.md, "Sampling apart
+from the update")."""
 
 
 if TYPE_CHECKING:
@@ -117,7 +118,7 @@ class TrainConfig:
     policy"); evaluations stay one-ego. 1: one ego per server, as before."""
     warmup_policy: str = "auto"
     """Actions before learning starts: random (uniform; the critic sees stops and crashes, not
-    only a baseline's driving: measured best on cf and cflc, docs/learner.md), idm (IDM +
+    only a baseline's driving: measured best on cf and cflc, docs/learner-design.md), idm (IDM +
     noise), idm+mobil (with its lane changes, those a route needs included, + noise; a residual
     policy's zero plus noise), or auto: idm+mobil for a residual policy, else random."""
     pretrain_idm: bool = False
@@ -185,7 +186,7 @@ class TrainConfig:
     chunks_in_flight: int = 1
     """sampling = processes or ray: requests each worker has at a time (2: it starts its next
     chunk as soon as it sends one, not when the learner, done with its updates, asks again;
-    7-10 % more env steps/s, measured not to pay on cf seeds: docs/learner.md)."""
+    7-10 % more env steps/s, measured not to pay on cf seeds: docs/learner-design.md)."""
     policy_sync_every: int = 500
     """sampling = processes or ray: transitions between two refreshes of the workers' policy
     copies."""

@@ -3,7 +3,7 @@
 One learner, one or more remote simulators. Each iteration has its collector send every server
 its next command, runs the gradient updates due while the simulators compute, then receives:
 the replies become transitions in one replay buffer. Updating while the simulator steps is what
-lets the learner keep up with it (docs/learner.md, "Speed"). Who steps the servers is the
+lets the learner keep up with it (docs/learner-design.md, "Speed"). Who steps the servers is the
 collector's business: this process in lock-step (`sampling.collect`), or a sampling worker per
 server in a process of its own or on Ray (`sampling.chunks`). When and where the policy is
 evaluated, and what its verdicts make of the run (the best policy, convergence), is

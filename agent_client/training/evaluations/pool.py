@@ -4,8 +4,8 @@ Where training waits for an evaluation, one client driving two servers in lock-s
 processes busy on two cores, and the client's share of every step (choosing the action,
 checking the reply, scoring it) is the slowest link. With a worker process per server
 (`agent_client.training.evaluations.worker`) each pair of client and server steps on its own,
-and the same episodes run 1.4-1.5x as fast on the 2-core VM (docs/learner.md, "Evaluations
-during training").
+and the same episodes run 1.4-1.5x as fast on the 2-core VM (docs/learner-design.md,
+"Evaluations during training: design and measurements").
 
 Seeds are handed out in order to whichever worker is free, and the failure screen judges the
 finished episodes in seed order (`judge_in_order`), as the lock-step evaluator does: the same
