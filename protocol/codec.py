@@ -92,11 +92,11 @@ _MAP16 = struct.Struct(">H")
 
 _NIL_TAILS: dict[type, tuple[tuple[str, bytes], ...]] = {
     Observation: tuple(
-        (name, msgpack.packb(name) + b"\xc0") for name in ("road", "traffic", "safety")
+        (name, msgpack.packb(name) + b"\xc0") for name in ("route", "road", "traffic", "safety")
     ),
     MultiObservation: ((("traffic", msgpack.packb("traffic") + b"\xc0")),),
 }
-"""The trailing optional fields (last first) of 1.3 and 1.6 that `encode` leaves out when nil,
+"""The trailing optional fields (last first) of 1.3, 1.6 and 1.8 that `encode` leaves out when nil,
 with their packed ``key: nil`` entries: a 1.2 peer's frame and ours are then the same bytes, and
 keep the fast path on both sides. Only for fixmaps (fewer than 15 fields), whose count is in
 byte 0."""

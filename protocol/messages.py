@@ -20,6 +20,11 @@ OptionValue = bool | int | float | str | None
 ROAD_RANGE = 1000.0
 """Metres of road ahead that `Road` describes: a lane that goes on farther along the ego's route,
 or reaches its end, is reported at this distance (since protocol 1.6)."""
+SIGNAL_HORIZON = 120.0
+"""Seconds ahead that `Road.signal_switch` looks: a signal state that lasts longer (an ``off``
+light, a long phase) is reported at this time (since protocol 1.8)."""
+MAX_ROUTE_EDGES = 1024
+"""The most edges `Route.edges` lists (the protocol's longest array, §5)."""
 
 
 class LaneChange(IntEnum):
@@ -44,6 +49,12 @@ class EndReason(StrEnum):
     LANE_END = "lane_end"
     """Stood at the end of a lane that does not continue its route, for ``lane_end_patience``
     seconds: a merge not made, an exit missed (since protocol 1.6)."""
+    RED_LIGHT = "red_light"
+    """Passed a red light (`Events.red_light`), where the reset option ``end_on_red_light``
+    asks for the episode to end there (since protocol 1.8)."""
+    JAMMED = "jammed"
+    """Stood (slower than ``stop_speed``) for ``jam_patience`` seconds, whatever held it: a
+    jam that does not clear, a gridlock (since protocol 1.8)."""
 
     @property
     def terminates(self) -> bool:
@@ -62,6 +73,31 @@ class LaneChangeRefusal(StrEnum):
     """A lane change is still under way (`Ego.changing_lane` is not 0)."""
     SIMULATOR_DRIVES = "simulator_drives"
     """The simulator drives the ego (option ``ego_driver = "sumo"``)."""
+
+
+class SignalState(StrEnum):
+    """The state of the ego's link at the next traffic light on its route (`Road.signal_state`,
+    since protocol 1.8)."""
+
+    NONE = ""
+    """No traffic light within `ROAD_RANGE` on the route."""
+    GREEN = "green"
+    """The way is open (with priority or, a permissive green, giving way to foes)."""
+    YELLOW = "yellow"
+    """About to turn red: stop if that can be done safely."""
+    RED = "red"
+    """Closed: red, or red-yellow (about to turn green)."""
+    OFF = "off"
+    """The light is off or blinking: the junction's right of way applies (`Road.stop_line`)."""
+
+
+class CollisionType(StrEnum):
+    """Where a collision happened (`Events.collision_type`, since protocol 1.8)."""
+
+    LANE = "lane"
+    """On a lane: into a leader, a vehicle alongside, a follower."""
+    JUNCTION = "junction"
+    """Inside a junction: with a vehicle crossing or merging on another link."""
 
 
 class AccelerationLimit(StrEnum):
@@ -280,6 +316,11 @@ class Events:
     teleported: bool = False
     lane_change_aborted: bool = False
     """A started lane change the simulator gave up (since protocol 1.1)."""
+    red_light: bool = False
+    """The ego passed the stop line of a traffic light whose state for its link was red
+    (since protocol 1.8)."""
+    collision_type: str = ""
+    """Where the collision happened, a `CollisionType` ("" without one; since protocol 1.8)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -403,10 +444,33 @@ class Road:
     that must give way to foes approaching with priority, a stop sign not yet stopped at);
     `ROAD_RANGE` when the way is open or no junction is that near. An older server's road has
     none."""
+    signal_distance: float = ROAD_RANGE
+    """Metres to the stop line of the next traffic light on the ego's route (since protocol
+    1.8); `ROAD_RANGE` when there is none that near."""
+    signal_state: str = ""
+    """The state of the ego's link at that light, a `SignalState` ("" when none)."""
+    signal_switch: float = 0.0
+    """Seconds until that state changes, by the light's programme as it stands (at most
+    `SIGNAL_HORIZON`); 0 when there is no light."""
 
 
 OPEN_ROAD = Road(ROAD_RANGE, 0, ROAD_RANGE, ROAD_RANGE)
 """A road whose lanes all lead on beyond `ROAD_RANGE` (beside a lane on each side)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Route:
+    """The ego's route through the network (since protocol 1.8): on the first and the last
+    observation of an episode, so that a result can be traced to the trip."""
+
+    edges: tuple[str, ...]
+    """The simulator's ids of the roads of the route, in order (at most `MAX_ROUTE_EDGES`: a
+    longer route lists its first ones)."""
+    length: float
+    """Metres from the start of the route's first road to the end of its last."""
+    driven: int
+    """How many of the route's roads the ego has entered: 1 at the start, all of them at the
+    end of the route."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -416,7 +480,9 @@ class Observation:
     `reason` says why an episode ended (an `EndReason`, a plain string on the wire), or is ""
     while it runs. `ceiling` is set on the last observation of an episode, and so is `safety`
     when asked for; `traffic` is on every observation when asked for (protocol 1.3). `road` is
-    the road ahead of the ego (protocol 1.6; None from older servers).
+    the road ahead of the ego (protocol 1.6; None from older servers); `route` the ego's route
+    on the first and the last observation (protocol 1.8; None on the others, and from a
+    simulator without routes).
     """
 
     TYPE: ClassVar[str] = "observation"
@@ -433,6 +499,7 @@ class Observation:
     safety: Safety | None = None
     traffic: Traffic | None = None
     road: Road | None = None
+    route: Route | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,8 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from operator import attrgetter
 
-from protocol.messages import FieldSpec, Observation, road_ahead
-from protocol.version import ROAD_VERSION, STOP_LINE_VERSION
+from protocol.messages import FieldSpec, Observation, SignalState, road_ahead
+from protocol.version import ROAD_VERSION, SIGNAL_VERSION, STOP_LINE_VERSION
 
 NEIGHBOUR_SLOTS: tuple[str, ...] = (
     "left_leader",
@@ -87,6 +87,32 @@ _STOP_LINE_FIELDS: list[tuple[FieldSpec, Getter]] = [
 ]
 """The stop line (since 1.7), after the road's four fields."""
 
+SIGNAL_CODES: dict[str, float] = {
+    SignalState.NONE: 0.0,
+    SignalState.OFF: 0.0,
+    SignalState.GREEN: 1.0,
+    SignalState.YELLOW: 2.0,
+    SignalState.RED: 3.0,
+}
+"""`Road.signal_state` in the flat vector: 0 no light (or one that is off), 1 green, 2 yellow,
+3 red (a state a newer server adds reads as 0)."""
+
+_SIGNAL_FIELDS: list[tuple[FieldSpec, Getter]] = [
+    (
+        FieldSpec("signal_distance", "m", "distance to the stop line of the next traffic light"),
+        lambda o: road_ahead(o).signal_distance,
+    ),
+    (
+        FieldSpec("signal_state", "1", "its state: 0 none or off, 1 green, 2 yellow, 3 red"),
+        lambda o: SIGNAL_CODES.get(road_ahead(o).signal_state, 0.0),
+    ),
+    (
+        FieldSpec("signal_switch", "s", "seconds until that state changes (0: no light)"),
+        lambda o: road_ahead(o).signal_switch,
+    ),
+]
+"""The next traffic light (since 1.8), after the stop line."""
+
 _FIELDS: list[tuple[FieldSpec, Getter]] = [
     (FieldSpec("time", "s", "simulation time"), lambda o: o.time),
     (FieldSpec("ego_speed", "m/s", "speed of the ego"), lambda o: o.ego.speed),
@@ -110,21 +136,25 @@ _FIELDS: list[tuple[FieldSpec, Getter]] = [
     *_neighbour_fields(),
     *_ROAD_FIELDS,
     *_STOP_LINE_FIELDS,
+    *_SIGNAL_FIELDS,
 ]
 
 OBSERVATION_FIELDS: tuple[FieldSpec, ...] = tuple(spec for spec, _ in _FIELDS)
 """The canonical flat vector, in order."""
 
-_BEFORE_STOP_LINE = len(OBSERVATION_FIELDS) - len(_STOP_LINE_FIELDS)
+_BEFORE_SIGNAL = len(OBSERVATION_FIELDS) - len(_SIGNAL_FIELDS)
+_BEFORE_STOP_LINE = _BEFORE_SIGNAL - len(_STOP_LINE_FIELDS)
 _BEFORE_ROAD = _BEFORE_STOP_LINE - len(_ROAD_FIELDS)
 
 
 def fields_for(version: tuple[int, int]) -> tuple[FieldSpec, ...]:
     """The flat vector a client of protocol `version` knows (a client refuses a field it does
-    not know): the 32 fields of 1.0 before 1.6, then the road's four too, then from 1.7 the
-    stop line."""
-    if version >= STOP_LINE_VERSION:
+    not know): the 32 fields of 1.0 before 1.6, then the road's four too, from 1.7 the stop
+    line, from 1.8 the next traffic light's three."""
+    if version >= SIGNAL_VERSION:
         return OBSERVATION_FIELDS
+    if version >= STOP_LINE_VERSION:
+        return OBSERVATION_FIELDS[:_BEFORE_SIGNAL]
     if version >= ROAD_VERSION:
         return OBSERVATION_FIELDS[:_BEFORE_STOP_LINE]
     return OBSERVATION_FIELDS[:_BEFORE_ROAD]

@@ -25,6 +25,12 @@ Revision history:
     1.7  The stop line: `road.stop_line`, where the ego must stop now at the next junction on
          its route (a red light, a road that must give way to foes with priority); one field
          of the flat vector, announced to 1.7 clients only.
+    1.8  Signals and the trip: `road.signal_distance`, `road.signal_state` and
+         `road.signal_switch` (the next traffic light on the ego's route, three fields of the
+         flat vector, announced to 1.8 clients only); `events.red_light` (a red light passed)
+         and `events.collision_type` ("lane" or "junction"); `observation.route` (the ego's
+         route and how much of it was driven, on the first and the last observation); the end
+         reasons ``red_light`` (where a reset option asks for it) and ``jammed``.
 
 The project's CHANGELOG.md ("Protocol versions") keeps this history beside the package releases.
 
@@ -34,7 +40,7 @@ optional fields or message types; receivers ignore map keys they do not know.
 
 from __future__ import annotations
 
-PROTOCOL_VERSION: tuple[int, int] = (1, 7)
+PROTOCOL_VERSION: tuple[int, int] = (1, 8)
 
 MANY_EGOS_VERSION: tuple[int, int] = (1, 4)
 """The first version with many egos in one simulation (`multi_step`, `multi_observation`)."""
@@ -47,6 +53,9 @@ ROAD_VERSION: tuple[int, int] = (1, 6)
 
 STOP_LINE_VERSION: tuple[int, int] = (1, 7)
 """The first version with the stop line (`Road.stop_line`)."""
+
+SIGNAL_VERSION: tuple[int, int] = (1, 8)
+"""The first version with signals (`Road.signal_distance` ...), `Events.red_light`, `Route`."""
 
 
 def format_version(version: tuple[int, int]) -> str:

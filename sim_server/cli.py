@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn
+from xml.etree import ElementTree
 
 from protocol.codec import DEFAULT_MAX_FRAME_BYTES
 from protocol.readiness import format_listening
@@ -152,9 +153,29 @@ def _add_simulator_arguments(group: argparse._ArgumentGroup) -> None:
         type=Path,
         help="offer your own SUMO scenario (.sumocfg) in addition to the built-in ones",
     )
-    group.add_argument("--ego-route", help="route id (in your route files) the ego drives")
     group.add_argument(
-        "--scenario-name", help="name clients use for --sumocfg (default: the file's stem)"
+        "--ego-route",
+        help="with --sumocfg: the route id (in your route files) the ego drives, or random (a "
+        "trip over the network drawn per seed)",
+    )
+    group.add_argument(
+        "--net",
+        type=Path,
+        metavar="FILE",
+        help="offer your own SUMO network (.net.xml[.gz]) as a scenario: seeded traffic and "
+        "an ego trip drawn per reset (docs/maps.md)",
+    )
+    group.add_argument(
+        "--osm",
+        type=Path,
+        metavar="FILE",
+        help="offer an OpenStreetMap export (.osm[.xml|.gz]) as a scenario: netconvert builds "
+        "its network once (cached), then as --net (docs/maps.md)",
+    )
+    group.add_argument(
+        "--scenario-name",
+        help="name clients use for --sumocfg, --net or --osm (default: the file's name "
+        "without its extensions)",
     )
     group.add_argument(
         "--cache-dir", type=Path, help="where built scenario files go (default ~/.cache/av-bridge)"
@@ -337,20 +358,37 @@ def _check_simulator(args: argparse.Namespace) -> None:
     if args.traci_port is not None and not 1 <= args.traci_port <= 65535:
         raise UsageError(f"--traci-port {args.traci_port}: expected a port in 1..65535")
     _check_gui(args)
-    if args.sumocfg is None:
-        for value, name in (
-            (args.ego_route, "--ego-route"),
-            (args.scenario_name, "--scenario-name"),
-        ):
-            if value is not None:
-                raise UsageError(f"{name} {value}: applies to --sumocfg only")
+    _check_map(args)
+
+
+def _check_map(args: argparse.Namespace) -> None:
+    """At most one of --sumocfg, --net and --osm, an existing file, a SUMO backend; the
+    options that go with them."""
+    given = [
+        (f"--{flag}", path) for flag in ("sumocfg", "net", "osm") if (path := getattr(args, flag))
+    ]
+    if args.ego_route is not None and args.sumocfg is None:
+        raise UsageError(
+            f"--ego-route {args.ego_route}: applies to --sumocfg only (on --net and --osm the "
+            "ego's trip is drawn per seed, or set with --option ego_from=EDGE --option ego_to=EDGE)"
+        )
+    if not given:
+        if args.scenario_name is not None:
+            raise UsageError(
+                f"--scenario-name {args.scenario_name}: applies to --sumocfg, --net or --osm only"
+            )
         return
+    if len(given) > 1:
+        raise UsageError(f"{given[0][0]} and {given[1][0]}: give one map per server")
+    flag, path = given[0]
     if not args.backend.startswith("sumo"):
-        raise UsageError(f"--sumocfg needs a SUMO backend (sumo, sumo-traci), not {args.backend}")
-    if not args.sumocfg.is_file():
-        raise UsageError(f"--sumocfg {args.sumocfg}: no such file")
-    if not args.ego_route:
-        raise UsageError("--sumocfg needs --ego-route (a route id defined in your route files)")
+        raise UsageError(f"{flag} needs a SUMO backend (sumo, sumo-traci), not {args.backend}")
+    if not path.is_file():
+        raise UsageError(f"{flag} {path}: no such file")
+    if flag == "--sumocfg" and not args.ego_route:
+        raise UsageError(
+            "--sumocfg needs --ego-route (a route id defined in your route files, or random)"
+        )
 
 
 def _check_gui(args: argparse.Namespace) -> None:
@@ -465,12 +503,8 @@ def _backend(args: argparse.Namespace) -> Backend:
         except RecordingError as exc:  # its message starts with the file or folder at fault
             raise UsageError(f"--recording {exc}") from exc
     from sim_server.backends.sumo.backend import SumoBackend
-    from sim_server.backends.sumo.scenarios import CustomScenario
 
-    custom: tuple[CustomScenario, ...] = ()
-    if args.sumocfg is not None:
-        name = args.scenario_name or args.sumocfg.stem
-        custom = (CustomScenario(name, args.sumocfg.resolve(), args.ego_route),)
+    custom = user_scenarios(args)
     if args.backend == "sumo-traci":
         return SumoBackend(
             cache_dir=args.cache_dir,
@@ -481,6 +515,34 @@ def _backend(args: argparse.Namespace) -> Backend:
             view=_gui_view(args) if args.gui else None,
         )
     return SumoBackend(cache_dir=args.cache_dir, custom=custom)
+
+
+def user_scenarios(args: argparse.Namespace) -> tuple[Any, ...]:
+    """The user's own scenario (--sumocfg, --net, --osm), built where it needs building (an OSM
+    export's network, once, into the cache); `UsageError` if it cannot be."""
+    from sim_server.backends.sumo.maps import MapNetwork, MapScenario, build_osm, map_name
+    from sim_server.backends.sumo.scenarios import CustomScenario, default_cache_dir
+
+    if args.sumocfg is not None:
+        name = args.scenario_name or args.sumocfg.stem
+        return (CustomScenario(name, args.sumocfg.resolve(), args.ego_route),)
+    path, flag = (args.osm, "--osm") if args.osm is not None else (args.net, "--net")
+    if path is None:
+        return ()
+    cache = args.cache_dir or default_cache_dir()
+    log = logging.getLogger("sim_server")
+    try:
+        net_file = build_osm(path, cache, log.info) if flag == "--osm" else path
+        network = MapNetwork.of(net_file, cache)
+    except (OSError, RuntimeError, ValueError, ElementTree.ParseError) as exc:
+        raise UsageError(f"{flag} {path}: {exc}") from exc
+    name = args.scenario_name or map_name(path)
+    graph = network.graph
+    description = (
+        f"your map {path.name}: {len(graph.roads)} roads, {graph.lane_km(list(graph.roads)):.0f} "
+        f"lane-km, {graph.traffic_lights} signalised junctions; seeded traffic and ego trips"
+    )
+    return (MapScenario(name, description, network),)
 
 
 # --------------------------------------------------------------------------- running
@@ -498,6 +560,8 @@ def main(argv: list[str] | None = None) -> int:
         endpoint, credentials = check_usage(args)
         if args.idle_priority:
             set_idle_priority()
+        if args.backend.startswith("sumo") and (args.osm is not None or args.net is not None):
+            user_scenarios(args)  # built (and cached) once, before any worker starts
         if args.workers > 1:
             return _run_workers(argv, args)
         if args.pool > 1:

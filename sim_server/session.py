@@ -32,6 +32,7 @@ from protocol.schema import OBSERVATION_FIELDS, fields_for
 from protocol.version import (
     PROTOCOL_VERSION,
     ROAD_VERSION,
+    SIGNAL_VERSION,
     STOP_LINE_VERSION,
     format_version,
     is_compatible,
@@ -47,6 +48,8 @@ _BEFORE_ROAD = (ROAD_VERSION[0], ROAD_VERSION[1] - 1)
 """The last version whose flat vector has no road fields."""
 _BEFORE_STOP_LINE = (STOP_LINE_VERSION[0], STOP_LINE_VERSION[1] - 1)
 """The last version whose flat vector has no stop line."""
+_BEFORE_SIGNAL = (SIGNAL_VERSION[0], SIGNAL_VERSION[1] - 1)
+"""The last version whose flat vector has no traffic light."""
 
 DEFAULT_SESSION_TIMEOUT_S = 600.0
 """Silence after which another client may take over a client that is still connected."""
@@ -90,13 +93,13 @@ class Session:
         )
         welcome = backend.welcome(ours)
         self._welcome = encode(welcome)
-        # A client refuses a flat-vector field it does not know: one older than 1.7 is
+        # A client refuses a flat-vector field it does not know: one older than 1.8 is
         # announced the fields of its version (the named observation it reads either way).
-        self._welcome_before_stop_line, self._welcome_before_road = (
+        self._welcome_before_signal, self._welcome_before_stop_line, self._welcome_before_road = (
             encode(replace(welcome, observation_fields=fields_for(version)))
             if welcome is ours
             else self._welcome
-            for version in (_BEFORE_STOP_LINE, _BEFORE_ROAD)
+            for version in (_BEFORE_SIGNAL, _BEFORE_STOP_LINE, _BEFORE_ROAD)
         )
         self.owner: bytes | None = None
         self.owner_connected = False
@@ -187,8 +190,10 @@ class Session:
             log.info("hello from %s", _printable(hello.client) or "an unnamed client")
         self.owner = peer
         self._episode = None
-        if hello.protocol >= STOP_LINE_VERSION:
+        if hello.protocol >= SIGNAL_VERSION:
             return self._welcome
+        if hello.protocol >= STOP_LINE_VERSION:
+            return self._welcome_before_signal
         if hello.protocol >= ROAD_VERSION:
             return self._welcome_before_stop_line
         return self._welcome_before_road

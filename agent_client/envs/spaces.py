@@ -45,7 +45,8 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
-from protocol.messages import ROAD_RANGE, ActionSchema, FieldSpec
+from protocol.messages import ROAD_RANGE, SIGNAL_HORIZON, ActionSchema, FieldSpec
+from protocol.schema import SIGNAL_CODES
 
 ACTION_SPACES = ("auto", "box", "hybrid", "discrete", "multi_discrete", "dict")
 """The names `RemoteEnv(action_space=...)` accepts."""
@@ -210,8 +211,10 @@ def field_bounds(spec: FieldSpec, sensor_range: float, schema: ActionSchema) -> 
     exactly it) and an overlap deeper than it is clipped, still negative; lateral offsets lie
     within the sensor range too; the ego's acceleration within the server's action bounds (every
     command is clipped to them); the road's distances within [0, `ROAD_RANGE`] and the lanes to
-    change within ±(`MAX_LANES` - 1); lane indices and counts, speeds, times and distances are
-    not negative and capped at `MAX_LANES`, `MAX_SPEED`, `MAX_TIME` and `MAX_DISTANCE`.
+    change within ±(`MAX_LANES` - 1); the next light's state code within `SIGNAL_CODES` and
+    its seconds to a change within `SIGNAL_HORIZON`; lane indices and counts, speeds, times
+    and distances are not negative and capped at `MAX_LANES`, `MAX_SPEED`, `MAX_TIME` and
+    `MAX_DISTANCE`.
     """
     name, unit = spec.name, spec.unit
     if name.endswith("_present"):
@@ -228,8 +231,12 @@ def field_bounds(spec: FieldSpec, sensor_range: float, schema: ActionSchema) -> 
         return 1.0, float(MAX_LANES)
     if name == "lanes_to_change":
         return 1.0 - MAX_LANES, MAX_LANES - 1.0
-    if name.endswith("lane_end") or name == "stop_line":
+    if name.endswith("lane_end") or name in ("stop_line", "signal_distance"):
         return 0.0, ROAD_RANGE
+    if name == "signal_state":
+        return 0.0, max(SIGNAL_CODES.values())
+    if name == "signal_switch":
+        return 0.0, SIGNAL_HORIZON
     caps = {"m/s": MAX_SPEED, "s": MAX_TIME, "m": MAX_DISTANCE}
     if unit in caps:
         return 0.0, caps[unit]

@@ -25,11 +25,14 @@ from dataclasses import fields, replace
 from agent_client.errors import InvalidReply
 from protocol.errors import ErrorCode
 from protocol.messages import (
+    MAX_ROUTE_EDGES,
     ROAD_RANGE,
+    SIGNAL_HORIZON,
     AccelerationLimit,
     AppliedAction,
     Bye,
     Close,
+    CollisionType,
     EgoObservation,
     EndReason,
     Error,
@@ -42,6 +45,8 @@ from protocol.messages import (
     Reply,
     Request,
     Reset,
+    Road,
+    SignalState,
     Step,
     Traffic,
     Welcome,
@@ -70,6 +75,8 @@ TERMINAL_REASONS = frozenset(r.value for r in EndReason if r.terminates)
 TRUNCATION_REASONS = frozenset(r.value for r in EndReason if not r.terminates)
 ACCELERATION_LIMITS = frozenset(a.value for a in AccelerationLimit)
 LANE_CHANGE_REFUSALS = frozenset(r.value for r in LaneChangeRefusal)
+SIGNAL_STATES = frozenset(s.value for s in SignalState)
+COLLISION_TYPES = frozenset(c.value for c in CollisionType)
 ERROR_CODES = frozenset(code.value for code in ErrorCode)
 _ANSWERS: dict[type, tuple[type, ...]] = {
     Hello: (Welcome, Error),
@@ -356,6 +363,7 @@ class _ObservationRules:
         self.body()
         self.ceiling()
         self.safety()
+        self.route()
         _traffic_problems(obs.traffic, self.where, self.rule)
 
     def body(self) -> None:
@@ -463,6 +471,33 @@ class _ObservationRules:
                 f"a lane of the road from lane {lane} of {lanes}: within "
                 f"{-lane}..{lanes - 1 - lane} (§4.9)",
             )
+        self._signal(road, where, top)
+
+    def _signal(self, road: Road, where: str, top: float) -> None:
+        """The next traffic light (§4.9, since 1.8): a known state (or a newer server's), a
+        distance within the road's range and the seconds to its change within the horizon;
+        none at all ("") is the range and 0 s."""
+        state = road.signal_state
+        if state not in SIGNAL_STATES and not self.newer:
+            self.rule(f"{where}.signal_state", state, f"one of {_one_of(SIGNAL_STATES)} (§4.9)")
+        if not 0 <= road.signal_distance <= top:
+            self.rule(
+                f"{where}.signal_distance",
+                road.signal_distance,
+                f"within [0, {ROAD_RANGE:g}] m (§4.9)",
+            )
+        if not 0 <= road.signal_switch <= SIGNAL_HORIZON * (1 + TOLERANCE):
+            self.rule(
+                f"{where}.signal_switch",
+                road.signal_switch,
+                f"within [0, {SIGNAL_HORIZON:g}] s (§4.9)",
+            )
+        if not state and (road.signal_distance < ROAD_RANGE or road.signal_switch):
+            self.rule(
+                f"{where}.signal_state",
+                state,
+                f"a state where a light is {road.signal_distance:g} m ahead (§4.9)",
+            )
 
     def neighbours(self) -> None:
         obs, sensed = self.obs, self.welcome.sensor_range
@@ -511,6 +546,39 @@ class _ObservationRules:
                 self.rule(
                     f"{self.where}.reason", reason, f"comes with events.{flag} true (§4.1, §4.4)"
                 )
+        if obs.reason == "red_light" and not events.red_light:
+            self.rule(f"{self.where}.reason", obs.reason, "comes with events.red_light (§4.4)")
+        kind = events.collision_type
+        if kind and not events.collision:
+            self.rule(
+                f"{self.where}.events.collision_type", kind, '"" unless events.collision (§4.4)'
+            )
+        elif kind and kind not in COLLISION_TYPES and not self.newer:
+            self.rule(
+                f"{self.where}.events.collision_type",
+                kind,
+                f'"" or one of {_one_of(COLLISION_TYPES)} (§4.4)',
+            )
+
+    def route(self) -> None:
+        """The ego's route (§4.1, since 1.8): on the first and the last observation only, a
+        length that is not negative, the roads driven within the route."""
+        obs, route = self.obs, self.obs.route
+        if route is None:
+            return
+        where = f"{self.where}.route"
+        if obs.seq > 0 and not (obs.terminated or obs.truncated):
+            self.rule(where, None, "nil but on the first and the last observation (§4.1)")
+        if not route.length >= 0:
+            self.rule(f"{where}.length", route.length, ">= 0 m (§4.1)")
+        if route.driven < 0 or (
+            len(route.edges) < MAX_ROUTE_EDGES and route.driven > len(route.edges)
+        ):
+            self.rule(
+                f"{where}.driven",
+                route.driven,
+                f"within 0..{len(route.edges)}, the roads of the route (§4.1)",
+            )
 
     def action(self, step: Step) -> None:
         action, welcome = self.obs.action, self.welcome

@@ -129,6 +129,12 @@ class EpisodeOptions(ParsedOptions):
     """Seconds the ego may stand (slower than `stop_speed`) within `stop_gap` of the end of a
     lane that does not continue its route, waiting for a gap; then ``lane_end`` (since protocol
     1.6)."""
+    jam_patience: float = 120.0
+    """Seconds the ego may stand (slower than `stop_speed`), whatever holds it (a queue, a red
+    light, a gridlock); then ``jammed`` (since protocol 1.8)."""
+    end_on_red_light: bool = False
+    """End the episode (``red_light``) when the ego passes a red light (since protocol 1.8);
+    false: the event is reported and the drive goes on."""
     report_ceiling: bool = True
     """Report the leader-at-entry's trip on the last observation."""
     ego_driver: str = "agent"
@@ -146,6 +152,7 @@ class EpisodeOptions(ParsedOptions):
         "stop_gap": Bounds(0.0, 10_000.0),
         "stop_patience": Bounds(0.0, 3600.0),
         "lane_end_patience": Bounds(0.0, 3600.0),
+        "jam_patience": Bounds(0.0, 86_400.0, low_excluded=True),
         "egos": Bounds(1, MAX_EGOS),
     }
 
@@ -192,6 +199,8 @@ class TrafficOptions(ParsedOptions):
     """Its standard deviation (a normal distribution truncated to [0.5, 1.5])."""
     sigma: float = 0.5
     """Krauss driver imperfection of the humans."""
+    human_model: str = "krauss"
+    """The humans' car-following model: krauss, idm, eidm or w99 (Wiedemann 99, VISSIM's)."""
 
     BOUNDS: ClassVar[Mapping[str, Bounds]] = {
         "flow": Bounds(0.0, 3600.0, unit=" veh/h/lane"),
@@ -199,6 +208,17 @@ class TrafficOptions(ParsedOptions):
         "speed_factor_dev": Bounds(0.0, 3.0),
         "sigma": Bounds(0.0, 1.0, text="within [0, 1]"),
     }
+
+    def check(self) -> None:
+        if self.human_model not in HUMAN_MODEL_NAMES:
+            raise invalid_option(
+                f"option human_model must be one of {', '.join(HUMAN_MODEL_NAMES)}, "
+                f"got {self.human_model[:64]!r}"
+            )
+
+
+HUMAN_MODEL_NAMES = ("krauss", "idm", "eidm", "w99")
+"""The humans' car-following models a backend may offer (`TrafficOptions.human_model`)."""
 
 
 @dataclass(frozen=True, slots=True)

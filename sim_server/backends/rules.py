@@ -22,6 +22,10 @@ request's 2 s (the gap closed meanwhile); without a timeout the ego would wait f
 
 _EPSILON_S = 1e-9
 """Slack on time comparisons, so that a sum of 0.1 s steps reaches a whole number of seconds."""
+GAP_WAIT_DISTANCE = 150.0
+"""m per lane to cross: this close to the end of a lane its route must leave (`Road`), an ego
+that stands waits for a gap to the lane it needs, which is no unreasonable stop (as it waits at
+a stop line)."""
 
 
 def limit_acceleration(
@@ -91,24 +95,30 @@ def lane_change_refusal(
 class EndRule:
     """When an episode ends, judged on each observation after a step.
 
-    In this order: a collision; the end of the road; a stand at the end of a lane that does
-    not continue the ego's route (slower than ``stop_speed`` within ``stop_gap`` of its end,
-    `Observation.road`, for ``lane_end_patience`` seconds: a merge not made, an exit missed);
-    an unreasonable stop (slower than ``stop_speed`` for ``stop_patience`` seconds, with no
-    leader or one more than ``stop_gap`` ahead and faster, away from a lane end and from a stop
-    line, `Road.stop_line`; a stop that began at a stop line has ``lane_end_patience`` seconds
-    once the line has cleared: a driver may wait for a longer gap than the simulator's);
-    ``max_episode_time`` seconds after the ego's entry (the only truncation).
+    In this order: a collision; the end of the road; a red light passed, where
+    ``end_on_red_light`` asks for it; a stand at the end of a lane that does not continue the
+    ego's route (slower than ``stop_speed`` within ``stop_gap`` of its end, `Observation.road`,
+    for ``lane_end_patience`` seconds: a merge not made, an exit missed); an unreasonable stop
+    (slower than ``stop_speed`` for ``stop_patience`` seconds, with no leader or one more than
+    ``stop_gap`` ahead and faster, where the road does not make the ego wait: not within
+    ``stop_gap`` of a stop line, `Road.stop_line`, nor within `GAP_WAIT_DISTANCE` per lane to
+    cross of the end of a lane it must leave, waiting for a gap; a stop that began so has
+    ``lane_end_patience`` seconds once the wait is over: a driver may wait for a longer gap than
+    the simulator's); a stand of ``jam_patience`` seconds, whatever holds the ego (a jam that
+    does not clear); ``max_episode_time`` seconds after the ego's entry (the only truncation).
     """
 
     __slots__ = (
+        "_end_on_red_light",
         "_entry_time",
+        "_jam_patience",
         "_lane_end_patience",
         "_stop_gap",
         "_stop_patience",
         "_stop_speed",
         "_time_limit",
         "at_lane_end_since",
+        "standing_since",
         "stopped_at_line",
         "stopped_since",
     )
@@ -120,6 +130,10 @@ class EndRule:
         self._lane_end_patience = options.lane_end_patience - _EPSILON_S
         self._entry_time = entry_time
         self._time_limit = options.max_episode_time - _EPSILON_S
+        self._jam_patience = options.jam_patience - _EPSILON_S
+        self._end_on_red_light = options.end_on_red_light
+        self.standing_since: float | None = None
+        """Time of the first observation of the current stand (None: moving)."""
         self.stopped_since: float | None = None
         """Time of the first observation of the current stop (None: not stopped)."""
         self.at_lane_end_since: float | None = None
@@ -138,6 +152,8 @@ class EndRule:
             return EndReason.COLLISION
         if obs.events.end_of_road:
             return EndReason.END_OF_ROAD
+        if obs.events.red_light and self._end_on_red_light:
+            return EndReason.RED_LIGHT
         standing = self._standing_at_lane_end(obs)
         if standing is not None:
             if standing >= self._lane_end_patience:
@@ -145,6 +161,8 @@ class EndRule:
             self.stopped_since = None  # waiting there for a gap is no unreasonable stop
         elif self._stopped(obs):
             return EndReason.STOPPED
+        if self._jammed(obs):
+            return EndReason.JAMMED
         if obs.time - self._entry_time >= self._time_limit:
             return EndReason.TIME_LIMIT
         return None
@@ -165,8 +183,8 @@ class EndRule:
         speed = obs.ego.speed
         if speed >= self._stop_speed:
             self.stopped_at_line = False
-        elif obs.road is not None and obs.road.stop_line <= self._stop_gap:
-            self.stopped_at_line = True  # waiting for the way to open
+        elif self._made_to_wait(obs):
+            self.stopped_at_line = True  # waiting for the way to open, or for a gap
             self.stopped_since = None
             return False
         if speed < self._stop_speed and (
@@ -178,6 +196,26 @@ class EndRule:
             return obs.time - self.stopped_since >= patience
         self.stopped_since = None
         return False
+
+    def _made_to_wait(self, obs: Observation) -> bool:
+        """The road makes the ego wait: a stop line within ``stop_gap``, or the end of a lane
+        it must leave within `GAP_WAIT_DISTANCE` per lane to cross (a gap to wait for)."""
+        road = obs.road
+        if road is None:
+            return False
+        if road.stop_line <= self._stop_gap:
+            return True
+        lanes = abs(road.lanes_to_change)
+        return lanes > 0 and road.lane_end <= GAP_WAIT_DISTANCE * lanes
+
+    def _jammed(self, obs: Observation) -> bool:
+        """Stood (slower than ``stop_speed``) for ``jam_patience`` seconds."""
+        if obs.ego.speed >= self._stop_speed:
+            self.standing_since = None
+            return False
+        if self.standing_since is None:
+            self.standing_since = obs.time
+        return obs.time - self.standing_since >= self._jam_patience
 
 
 def ended(obs: Observation, reason: EndReason) -> Observation:

@@ -53,7 +53,7 @@ def test_gymnasium_make_works_in_a_fresh_interpreter(
 ) -> None:
     result = run_fresh(MAKE.format(imports=imports, env_id=env_id, address=fake.address))
     assert result.returncode == 0, result.stderr
-    assert result.stdout.strip() == "Box(-1.0, 1.0, (1,), float32) (37,) RemoteEnv"
+    assert result.stdout.strip() == "Box(-1.0, 1.0, (1,), float32) (40,) RemoteEnv"
 
 
 def test_without_any_import_the_bare_id_is_not_found(fake: RunningServer) -> None:

@@ -52,7 +52,7 @@ def test_one_env_draws_its_scenario_from_the_seed(sumo_server: RunningServer) ->
         assert env.scenario == "merge" and env.options["ramp_flow"] == 100.0
         env.reset(seed=7)
         assert env.scenario == "cflc" and "ramp_flow" not in env.options  # cflc has no ramp
-        assert env.observation_space.shape == (37,)
+        assert env.observation_space.shape == (40,)
         _, info = env.reset(seed=7)
         assert info["observation"].road.lane_end == ROAD_RANGE
     finally:

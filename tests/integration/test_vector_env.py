@@ -29,7 +29,7 @@ def test_the_vector_env_steps_every_server_and_resets_finished_ones(
     addresses = [s.address for s in fake_servers]
     env = RemoteVectorEnv(addresses, "cf", reward="ra3", max_episode_time=1.0)
     try:
-        assert env.num_envs == 3 and env.observation_space.shape == (3, 37)
+        assert env.num_envs == 3 and env.observation_space.shape == (3, 40)
         first, info = env.reset(seed=5)
         assert [o.ego.speed for o in info["observation"]] == list(first[:, 1])
         actions = {"acceleration": np.array([[1.0], [0.0], [-1.0]]), "lane_change": np.zeros(3)}

@@ -72,7 +72,7 @@ def test_handshake_announces_versions_schema_and_scenarios(session: Session) -> 
 
 
 @pytest.mark.parametrize(
-    ("version", "fields"), [((1, 5), 32), ((1, 0), 32), ((1, 6), 36), ((1, 7), 37)]
+    ("version", "fields"), [((1, 5), 32), ((1, 0), 32), ((1, 6), 36), ((1, 7), 37), ((1, 8), 40)]
 )
 def test_a_client_is_announced_the_flat_vector_of_its_version(
     session: Session, version: tuple[int, int], fields: int

@@ -32,12 +32,16 @@ import itertools
 import math
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+from xml.etree import ElementTree
 
 from protocol.errors import ErrorCode
 from protocol.messages import (
+    MAX_ROUTE_EDGES,
+    ROAD_RANGE,
     AccelerationLimit,
     AppliedAction,
     Ego,
@@ -50,6 +54,7 @@ from protocol.messages import (
     Neighbours,
     Observation,
     OptionValue,
+    Route,
     Safety,
     ScenarioInfo,
     Traffic,
@@ -81,6 +86,15 @@ from sim_server.backends.sumo.egos import (
     ego_ids,
     multi_observation,
 )
+from sim_server.backends.sumo.junctions import BLOCKING_LOOK, BLOCKING_TIME, JunctionFoes
+from sim_server.backends.sumo.maps import (
+    EPISODE_SLACK_S,
+    TELEPORT_AFTER_S,
+    MapNetwork,
+    MapScenario,
+    ego_route,
+    episode_files,
+)
 from sim_server.backends.sumo.road import Foe, carried, road_ahead, stop_line, yields_at
 from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
 from sim_server.backends.sumo.scenarios import (
@@ -100,7 +114,9 @@ from sim_server.backends.sumo.scenarios import (
     build_road,
     default_cache_dir,
 )
+from sim_server.backends.sumo.signals import NO_SIGNAL, Programmes, next_signal, signal_line
 from sim_server.backends.sumo.traffic import observe_traffic
+from sim_server.backends.sumo.urban import URBAN, UrbanScenario, shift_signals
 from sim_server.errors import BackendError
 
 SPEED_MODE_NO_CHECKS = 32
@@ -110,19 +126,35 @@ CEILING_HORIZON = 3600.0
 CEILING_MIN_SPEED = 5.0
 """The slowest average speed (m/s) the leader-at-entry is waited for over its remaining route:
 a leader that needs longer (held in a jam) leaves the ceiling unknown."""
+CEILING_WALL_S = 2.0
+"""Longest wall-clock time (s) spent waiting for the leader-at-entry: the episode's last reply
+must come within any client's step deadline, whatever the network (a city of thousands of
+vehicles simulates far slower than real time would allow an hour of it)."""
+TURNED = frozenset("yYru")
+"""Link states of a light that has turned against the vehicles still inside its junction."""
+SAME_LINE = 1.0
+"""m: a traffic light this close to the end of the ego's lane is the one at its next junction."""
+INSERTION_WALL_S = 120.0
+"""Longest wall-clock time (s) a reset waits for an ego to enter (beside the simulated
+``insertion_timeout``): within the client's reset deadline on any network."""
 
-# Command-line options forced on every scenario, also a user's own .sumocfg.
+# Command-line options forced on every scenario, also a user's own .sumocfg (a map's own take
+# the time to teleport from `_forced_args`).
 _FORCED_ARGS = [
     "--collision.action", "warn",
     "--collision.mingap-factor", "0",
+    "--collision.check-junctions", "true",
     "--time-to-teleport", "-1",
     "--lanechange.duration", "2",
     "--no-step-log", "true",
     "--no-warnings", "true",
 ]  # fmt: skip
 
-AnyScenario = Scenario | CorridorScenario
-"""What a reset may load: a straight road, the ring, a corridor, or a user's own .sumocfg."""
+AnyScenario = Scenario | CorridorScenario | MapScenario | UrbanScenario
+"""What a reset may load: a straight road, the ring, a corridor, the city, a user's own .sumocfg
+or map."""
+MapLike = MapScenario | UrbanScenario
+"""Scenarios whose traffic and ego trip are drawn per seed over a network (`maps`)."""
 
 _ABSENT = Neighbour(present=False, gap=0.0, lateral=0.0, speed=0.0)
 
@@ -161,6 +193,11 @@ class _Episode:
     hand_over: float = math.nan
     """When the client took the first egos over (``ego_share``: the episode's time limit runs
     from it for those that join later too)."""
+    signals: Programmes | None = None
+    """The network's traffic lights' programmes, None on a network without lights (the next
+    light and red lights passed are looked for only where there are lights)."""
+    junction_foes: JunctionFoes | None = None
+    """The foe lanes of the connections the egos took so far (made when first needed)."""
 
     ids: set[str] = field(init=False)
     """Every ego of the episode, running or not: none of them is `traffic`."""
@@ -187,7 +224,7 @@ class SumoBackend(Backend):
     def __init__(
         self,
         cache_dir: Path | None = None,
-        custom: tuple[CustomScenario, ...] = (),
+        custom: tuple[CustomScenario | MapScenario, ...] = (),
         restart_every: int = 50,
         *,
         traci: bool = False,
@@ -209,6 +246,7 @@ class SumoBackend(Backend):
         self._scenarios: dict[str, AnyScenario] = {
             **BUILTIN_SCENARIOS,
             **CORRIDORS,
+            URBAN.name: URBAN,
         }
         for scenario in custom:
             self._scenarios[scenario.name] = scenario
@@ -226,6 +264,12 @@ class SumoBackend(Backend):
         """A temporary folder of SSM logs, made when first needed."""
         self._log_numbers = itertools.count()
         self._lane_lengths: dict[str, float] = {}
+        self._episode_files: Path | None = None
+        """A temporary folder of the running map episode's files, made when first needed."""
+        self._network: MapNetwork | None = None
+        """The network of the running episode where the ego's trip is drawn over it."""
+        self._networks: dict[Path, MapNetwork] = {}
+        """Networks read for random ego trips on a user's .sumocfg, by file."""
         if over_traci is not None and traci_port is not None:
             try:
                 self._api = over_traci.attach()
@@ -306,9 +350,17 @@ class SumoBackend(Backend):
             files = self._files(chosen, options, seed, slots)
             log = self._new_ssm_log() if measures.ssm else None
             device = ssm.device_args(EGO_ID, log) if log is not None else []
-            self._load(["-c", str(files.config), "--seed", str(seed), *_FORCED_ARGS, *device])
+            forced = _forced_args(TELEPORT_AFTER_S if isinstance(chosen, MapLike) else -1)
+            self._load(["-c", str(files.config), "--seed", str(seed), *forced, *device])
             self._lane_lengths = {}  # another network, perhaps
             self._drop_old_logs(keep=log)
+            if self._network is not None:  # the ego's trip, drawn from the seed
+                if EGO_TYPE not in self._api.vehicletype.getIDList():
+                    self._define_ego_type()  # a user's .sumocfg: the route is the ego type's
+                edges = ego_route(self._api, self._network, options, seed)
+                self._api.route.add(files.ego_route, edges)
+            if isinstance(chosen, UrbanScenario):
+                shift_signals(self._api, seed)
             if layout is not None:
                 first = self._place_egos(layout, slots, ids, episode_options, measures, many)
             elif share:
@@ -338,19 +390,50 @@ class SumoBackend(Backend):
         """The scenario's files: a built-in one's built from its `options` (a corridor's
         geometry drawn from the `seed`; the ring's humans leave `ego_slots` free), and the
         egos' route (the ring's egos are placed by `_place_egos` instead)."""
+        self._network = None
         if isinstance(scenario, CustomScenario):
-            return ScenarioFiles(scenario.sumocfg, scenario.ego_route)
+            if not scenario.random_route:
+                return ScenarioFiles(scenario.sumocfg, scenario.ego_route)
+            self._network = self._user_network(scenario)
+            return ScenarioFiles(scenario.sumocfg, f"{EGO_ROUTE}.{seed}", "best")
         cache = self._cache_dir
         try:
+            if isinstance(scenario, MapLike):
+                self._network = network = scenario.network_for(options, seed, cache)
+                episode = EpisodeOptions.parse(options)
+                horizon = (
+                    episode.warmup + episode.insertion_timeout + episode.max_episode_time
+                    + EPISODE_SLACK_S
+                )  # fmt: skip
+                return episode_files(network, options, seed, horizon, self._map_folder())
             if isinstance(scenario, RingScenario):
                 return ScenarioFiles(build_ring(scenario, options, cache, ego_slots), "")
             if isinstance(scenario, CorridorScenario):
                 return scenario.files(options, seed, cache)
             return ScenarioFiles(build_road(scenario, options, cache), EGO_ROUTE)
-        except (OSError, RuntimeError) as exc:
+        except (OSError, RuntimeError, ValueError) as exc:
             raise BackendError(
                 ErrorCode.SIMULATOR_ERROR, f"could not build scenario {scenario.name}: {exc}"
             ) from exc
+
+    def _user_network(self, scenario: CustomScenario) -> MapNetwork:
+        """The network of a user's .sumocfg, read once, for random ego trips over it."""
+        net_file = scenario.net_file()
+        known = self._networks.get(net_file)
+        if known is None:
+            try:
+                known = self._networks[net_file] = MapNetwork.of(net_file, self._cache_dir)
+            except (OSError, ValueError, ElementTree.ParseError) as exc:
+                raise BackendError(
+                    ErrorCode.SIMULATOR_ERROR, f"could not read the network {net_file}: {exc}"
+                ) from exc
+        return known
+
+    def _map_folder(self) -> Path:
+        """Where a map's episode files go (its route file and .sumocfg), made once."""
+        if self._episode_files is None:
+            self._episode_files = Path(tempfile.mkdtemp(prefix="av-bridge-map-"))
+        return self._episode_files
 
     def _load(self, args: list[str]) -> None:
         if self._running and (self._loads < self._restart_every or not self._sumo.restarts):
@@ -413,9 +496,29 @@ class SumoBackend(Backend):
             many=many,
             sumo_drives=options.simulator_drives,
             one_way=one_way,
+            signals=self._programmes(),
         )
+        if not many:
+            egos[0].route = tuple(edges)
         action = AppliedAction(0.0, 0, 0.0, 0)
-        return [self._observe(episode, ego, 0, Events(), action, not many) for ego in egos]
+        observed = [self._observe(episode, ego, 0, Events(), action, not many) for ego in egos]
+        if not many:
+            observed[0] = replace(observed[0], route=self._route(episode, egos[0], arrived=False))
+        return observed
+
+    def _programmes(self) -> Programmes | None:
+        """The loaded network's traffic lights (their programmes read as needed), or None
+        where it has none."""
+        api = self._api
+        return Programmes(api) if api.trafficlight.getIDCount() > 0 else None
+
+    def _route(self, episode: _Episode, ego: EgoState, *, arrived: bool) -> Route | None:
+        """The ego's route as the first and the last observation report it (None on the ring,
+        whose route goes round it lap after lap)."""
+        if not ego.route:
+            return None
+        driven = len(ego.route) if arrived else ego.route_index + 1
+        return Route(ego.route[:MAX_ROUTE_EDGES], episode.route_length, driven)
 
     def _leader_at_entry(self, ego_id: str, route: Any, route_length: float) -> str:
         """The vehicle directly ahead of the ego at its entry, if it drives the ego's whole
@@ -513,6 +616,7 @@ class SumoBackend(Backend):
             one_way=one_way,
             share=draw,
             hand_over=api.simulation.getTime(),
+            signals=self._programmes(),
         )
         action = AppliedAction(0.0, 0, 0.0, 0)
         return [
@@ -578,13 +682,16 @@ class SumoBackend(Backend):
         ego that `entered` before it reaches the end of the road meanwhile."""
         api = self._api
         deadline = api.simulation.getTime() + timeout
+        wall_deadline = time.monotonic() + INSERTION_WALL_S
         while ego_id not in api.simulation.getDepartedIDList():
-            if api.simulation.getTime() >= deadline:
+            late = time.monotonic() >= wall_deadline
+            if api.simulation.getTime() >= deadline or late:
                 api.vehicle.remove(ego_id)
                 who = "the ego" if ego_id == EGO_ID else ego_id
+                waited = f"{INSERTION_WALL_S:g} s of wall-clock time" if late else f"{timeout} s"
                 raise BackendError(
                     ErrorCode.INSERTION_FAILED,
-                    f"{who} could not enter within {timeout} s "
+                    f"{who} could not enter within {waited} "
                     "(road too full at the entry); try a lower flow or another seed",
                 )
             api.simulationStep()
@@ -703,13 +810,17 @@ class SumoBackend(Backend):
 
     def _drive(self, episode: _Episode, drive: Drive) -> None:
         """Run the decision's simulation steps; stop early at a collision or the ego's arrival."""
-        simulation = self._api.simulation
+        api = self._api
+        simulation = api.simulation
         ego = drive.ego
         ego_id = ego.id
+        signals = episode.signals is not None
         for _ in range(episode.substeps):
             applied, why = self._substep(episode, ego_id, drive.request)
             drive.applied(applied, why)
-            drive.collision_with = collision_partner(simulation.getCollisions(), ego_id)
+            drive.collision_with, drive.collision_type = collision_partner(
+                simulation.getCollisions(), ego_id
+            )
             arrived = simulation.getArrivedIDList()
             if episode.leader_arrival is None and episode.leader_id in arrived:
                 episode.leader_arrival = simulation.getTime()
@@ -719,6 +830,8 @@ class SumoBackend(Backend):
             if ego_id in arrived:
                 drive.end_of_road = True
                 break
+            if signals and ego.red_lights.passed_red(api, ego_id):
+                drive.red_light = True
             self._lane_change_steps(drive)
 
     def _substep(self, episode: _Episode, ego_id: str, request: float) -> tuple[float, str]:
@@ -809,6 +922,9 @@ class SumoBackend(Backend):
         ego_id = episode.ego.id
         if ego_id in api.vehicle.getIDList():
             api.vehicle.remove(ego_id)
+        route = self._route(episode, episode.ego, arrived=obs.events.end_of_road)
+        if route is not None:
+            obs = replace(obs, route=route)
         if episode.options.report_ceiling:
             obs = replace(obs, ceiling=self._leader_trip(episode))
         if episode.ssm_log is not None:
@@ -928,7 +1044,11 @@ class SumoBackend(Backend):
                     gone = drive.ego.id in arrived
                     acceleration = 0.0 if gone else vehicle.getAcceleration(drive.ego.id)
                     drive.applied(acceleration, AccelerationLimit.SIMULATOR)
-            ending = [d for d in active if self._progress(d, partners, arrived, teleports)]
+            ending = [
+                d
+                for d in active
+                if self._progress(d, partners, arrived, teleports, episode.signals)
+            ]
             if ending:
                 for drive in ending:  # every one observed before any is taken out
                     action, events = drive.outcome()
@@ -942,20 +1062,27 @@ class SumoBackend(Backend):
         return finals
 
     def _progress(
-        self, drive: Drive, partners: dict[str, str], arrived: Any, teleports: Any
+        self,
+        drive: Drive,
+        partners: dict[str, tuple[str, str]],
+        arrived: Any,
+        teleports: Any,
+        signals: Programmes | None,
     ) -> bool:
         """Record what one simulation step did to an ego; True if its drive ended in it (a
         collision, its arrival)."""
         ego = drive.ego
         if teleports and ego.id in teleports:
             drive.teleported = True
-        partner = partners.get(ego.id, "") if partners else ""
-        if partner:
-            drive.collision_with = partner
+        partner = partners.get(ego.id) if partners else None
+        if partner is not None:
+            drive.collision_with, drive.collision_type = partner
             return True
         if ego.id in arrived:
             drive.end_of_road = True
             return True
+        if signals is not None and ego.red_lights.passed_red(self._api, ego.id):
+            drive.red_light = True
         self._lane_change_steps(drive)
         return False
 
@@ -999,7 +1126,7 @@ class SumoBackend(Backend):
         would be overwritten), read the log, delete it. Over TraCI a load is acknowledged before
         the old simulation has closed; a round trip after it waits for that."""
         config = self._files(BUILTIN_SCENARIOS["cf"], {}, 0).config
-        self._load(["-c", str(config), *_FORCED_ARGS])
+        self._load(["-c", str(config), *_forced_args(-1)])
         self._api.simulation.getTime()
         try:
             return ssm.read_log(log, episode.dt, since=episode.ego.end.entry_time)
@@ -1010,12 +1137,16 @@ class SumoBackend(Backend):
 
     def _leader_trip(self, episode: _Episode) -> LeaderTrip | None:
         """The leader-at-entry's trip: the simulation runs on (without the ego) until it
-        arrives, for at most `_run_on` seconds; arrival nil if it has not."""
+        arrives, for at most `_run_on` seconds of simulation and `CEILING_WALL_S` of wall-clock
+        time; arrival nil if it has not."""
         api = self._api
         if not episode.leader_id:
             return None
         end = api.simulation.getTime() + self._run_on(episode)
+        wall_end = time.monotonic() + CEILING_WALL_S
         while episode.leader_arrival is None and api.simulation.getTime() < end:
+            if time.monotonic() >= wall_end:
+                break  # the reply cannot wait longer: the ceiling stays unknown
             api.simulationStep()
             if episode.leader_id in api.simulation.getArrivedIDList():
                 episode.leader_arrival = api.simulation.getTime()
@@ -1094,15 +1225,35 @@ class SumoBackend(Backend):
         onward = next((entry[5] for entry in best_lanes if entry[0] == lane_id), ())
         # A junction ahead on the route only where the lane leads into another (not on `cf`).
         links = vehicle.getNextLinks(ego_id) if road is not None and len(onward) > 1 else ()
+        signal = NO_SIGNAL
+        if episode.signals is not None:
+            now, inside = self._api.simulation.getTime(), ego.red_lights.inside(self._api, ego_id)
+            signal = next_signal(self._api, ego_id, episode.signals, now, inside)
         if road is not None:
             to_junction = self._lane_length(lane_id) - lane_position
-            foes = self._priority_foes(ego_id, yields_at(links), to_junction)
-            line = stop_line(links, to_junction, speed, state.speed_limit, foes)
+            ego.approach_lane = lane_id
+            foes = self._priority_foes(episode, ego_id, lane_id, links, to_junction)
+            at_light = abs(signal.distance - to_junction) <= SAME_LINE
+            yellow_left = signal.switch if at_light else math.inf
+            line = stop_line(links, to_junction, speed, state.speed_limit, foes, yellow_left)
             road = replace(road, stop_line=line)
         if road is None:  # on a junction
             last = ego.last
             driven = position - last.ego.position if last is not None else 0.0
             road = carried(last.road if last is not None else None, driven, lane, lane_count)
+            if not episode.one_way:  # where it may wait inside for foes (turning across them)
+                line = self._stop_within(episode, ego, lane_id, lane_position)
+                road = replace(road, stop_line=line)
+        if episode.signals is not None:
+            road = replace(
+                road,
+                stop_line=min(road.stop_line, signal_line(signal, speed)),
+                signal_distance=signal.distance,
+                signal_state=signal.state,
+                signal_switch=signal.switch,
+            )
+        if ego.route:
+            ego.route_index = vehicle.getRouteIndex(ego_id)
         frame = None if episode.curved else self._frame(ego_id)
         ego_min_gap = ego.min_gap
         sensed = self.sensor_range
@@ -1159,19 +1310,65 @@ class SumoBackend(Backend):
         heading = math.radians(self._api.vehicle.getAngle(ego_id))
         return (x, y, -math.cos(heading), math.sin(heading))
 
-    def _priority_foes(self, ego_id: str, via: str, to_junction: float) -> tuple[Foe, ...]:
-        """The foes with priority the ego must give way to on the junction lane `via` ("":
-        none to look at) of its next junction (`vehicle.getJunctionFoes`: who yields to whom
-        is SUMO's, by the junction's right of way)."""
-        if not via:
+    def _stop_within(
+        self, episode: _Episode, ego: EgoState, lane_id: str, lane_position: float
+    ) -> float:
+        """The stop line on a junction's internal lane: the waiting point inside the junction
+        (SUMO's internal junction) of a vehicle turning across oncoming traffic, while the
+        foes with priority over its way on (from the lane it came from) are too close;
+        `ROAD_RANGE` where the way on is open, or once the light it entered at has turned
+        yellow or red (the junction is cleared by those inside it)."""
+        lanes = self._api.lane
+        links = lanes.getLinks(lane_id)
+        if not links or not ego.approach_lane:
+            return ROAD_RANGE
+        own = next(
+            (link[5] for link in lanes.getLinks(ego.approach_lane) if link[0] == links[0][0]), ""
+        )
+        if own in TURNED:  # its light has turned: it clears the junction, the others wait
+            return ROAD_RANGE
+        to_junction = self._lane_length(lane_id) - lane_position
+        speed = self._api.vehicle.getSpeed(ego.id)
+        foes = self._priority_foes(episode, ego.id, ego.approach_lane, links, to_junction)
+        limit = self._api.lane.getMaxSpeed(lane_id)
+        return stop_line(links, to_junction, speed, limit, foes)
+
+    def _priority_foes(
+        self, episode: _Episode, ego_id: str, from_lane: str, links: Any, to_junction: float
+    ) -> tuple[Foe, ...]:
+        """The foes the ego must give way to where it takes the first of `links` from
+        `from_lane`. Where that link gives way and is open (`yields_at`): SUMO's junction foes
+        on its junction lane (`vehicle.getJunctionFoes`, which knows where their ways meet),
+        or where SUMO names none, the vehicles coming on the lanes with priority over its
+        connection (`JunctionFoes.of`; where the junction lane leads to a waiting point inside
+        the junction, a turn across oncoming traffic, those are judged there, `_stop_within`);
+        on any link, near the junction, the vehicles inside it across the ego's way
+        (`JunctionFoes.inside`)."""
+        if not links:
             return ()
-        vehicle = self._api.vehicle
-        return tuple(
-            Foe(foe_distance, foe_exit, vehicle.getSpeed(foe_id), ego_exit)
-            for (foe_id, _, foe_distance, ego_exit, foe_exit, ego_lane, _, ego_yields,
-                 foe_yields) in vehicle.getJunctionFoes(ego_id, to_junction + 1.0)
-            if ego_lane == via and ego_yields and not foe_yields
-        )  # fmt: skip
+        link = links[0]
+        ego_exit = to_junction + link[7]
+        found: tuple[Foe, ...] = ()
+        via = yields_at(links)
+        if via:
+            vehicle = self._api.vehicle
+            found = tuple(
+                Foe(foe_distance, foe_exit, vehicle.getSpeed(foe_id), ego_exit)
+                for (foe_id, _, foe_distance, ego_exit, foe_exit, ego_lane, _, ego_yields,
+                     foe_yields) in vehicle.getJunctionFoes(ego_id, to_junction + 1.0)
+                if ego_lane == via and ego_yields and not foe_yields
+            )  # fmt: skip
+        if episode.one_way:
+            return found
+        if episode.junction_foes is None:
+            episode.junction_foes = JunctionFoes(self._api)
+        foes = episode.junction_foes
+        if via and not found and not foes.waits_inside(via):  # inside: judged there
+            found = foes.of(from_lane, link[0], ego_exit)
+        speed = self._api.vehicle.getSpeed(ego_id)
+        if to_junction <= max(BLOCKING_LOOK, speed * BLOCKING_TIME) and link[4]:
+            found += foes.inside(link[4], ego_exit)
+        return found
 
     def _leader_beyond(
         self,
@@ -1300,6 +1497,16 @@ class SumoBackend(Backend):
         if self._logs is not None:
             shutil.rmtree(self._logs, ignore_errors=True)
             self._logs = None
+        if self._episode_files is not None:
+            shutil.rmtree(self._episode_files, ignore_errors=True)
+            self._episode_files = None
+
+
+def _forced_args(teleport: float) -> list[str]:
+    """`_FORCED_ARGS` with SUMO's time to teleport a stuck vehicle (-1: never)."""
+    args = list(_FORCED_ARGS)
+    args[args.index("--time-to-teleport") + 1] = f"{teleport:g}"
+    return args
 
 
 def _second(pair: tuple[str, float]) -> float:

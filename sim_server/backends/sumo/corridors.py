@@ -31,9 +31,10 @@ from sim_server.backends.options import (
     TrafficOptions,
     invalid_option,
 )
+from sim_server.backends.sumo.humans import human_type
 from sim_server.backends.sumo.scenarios import (
     EGO_ROUTE,
-    EGO_TYPE,
+    EGO_TYPE_LINE,
     HUMAN_TYPE,
     MEASURE_OPTIONS,
     ROAD_STEP_LENGTH,
@@ -381,11 +382,8 @@ def network_texts(network: Network, traffic: TrafficOptions) -> dict[str, str]:
         "road.con.xml": f"<connections>\n{connections}</connections>\n",
         "routes.rou.xml": (
             "<routes>\n"
-            f'    <vType id="{HUMAN_TYPE}" vClass="passenger" carFollowModel="Krauss" '
-            f'sigma="{traffic.sigma}" speedFactor="normc({mean},{dev},0.5,1.5)" '
-            'lcModel="LC2013"/>\n'
-            f'    <vType id="{EGO_TYPE}" vClass="passenger" accel="3" decel="6" '
-            'emergencyDecel="9" sigma="0" speedFactor="1" speedDev="0" color="0,0,1"/>\n'
+            f"{human_type(HUMAN_TYPE, traffic.human_model, traffic.sigma, mean, dev)}"
+            f"{EGO_TYPE_LINE}"
             f"{routes}{flows}"
             "</routes>\n"
         ),

@@ -14,11 +14,12 @@ from __future__ import annotations
 import math
 import random
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from protocol.messages import (
     AppliedAction,
+    CollisionType,
     EndReason,
     Events,
     MultiObservation,
@@ -27,6 +28,7 @@ from protocol.messages import (
 )
 from sim_server.backends.base import ego_part
 from sim_server.backends.rules import EndRule, LaneChangeUnderWay
+from sim_server.backends.sumo.signals import RedLightWatch
 
 EGO_ID_PREFIX = "ego."
 """The egos of a multi-ego episode are ``ego.0``, ``ego.1``, ... in the order they entered."""
@@ -56,6 +58,15 @@ class EgoState:
     lane_change: LaneChangeUnderWay | None = None
     last: Observation | None = None
     """Its latest observation: extrapolated when it leaves the network."""
+    route: tuple[str, ...] = ()
+    """The edges of its route, reported on its first and last observation (not on the ring)."""
+    route_index: int = 0
+    """The edge of its route it was on at its latest observation (0: the first)."""
+    approach_lane: str = ""
+    """The last lane it was on outside a junction (where its way through the junction
+    began)."""
+    red_lights: RedLightWatch = field(default_factory=RedLightWatch)
+    """Whether it crosses a red stop line (networks with traffic lights only)."""
 
 
 class Drive:
@@ -65,12 +76,14 @@ class Drive:
     __slots__ = (
         "aborted",
         "applied_total",
+        "collision_type",
         "collision_with",
         "completed",
         "ego",
         "end_of_road",
         "lane_change",
         "limited_by",
+        "red_light",
         "refused",
         "request",
         "signalled_from",
@@ -91,6 +104,8 @@ class Drive:
         self.limited_by = ""
         self.substeps = 0
         self.collision_with = ""
+        self.collision_type = ""
+        self.red_light = False
         self.end_of_road = False
         self.teleported = False
         self.completed = False
@@ -126,6 +141,7 @@ class Drive:
             or self.aborted
             or refused
             or self.teleported
+            or self.red_light
         ):
             return action, QUIET
         events = Events(
@@ -137,6 +153,8 @@ class Drive:
             lane_change_refused=bool(refused),
             teleported=self.teleported,
             lane_change_aborted=self.aborted,
+            red_light=self.red_light,
+            collision_type=self.collision_type if collision_with else "",
         )
         return action, events
 
@@ -175,25 +193,37 @@ class ShareDraw:
         return joining
 
 
-def collision_partner(collisions: Any, ego_id: str) -> str:
-    """The vehicle `ego_id` collided with in this simulation step, or ""."""
-    partner = ""
+NO_COLLISION = ("", "")
+
+
+def collision_partner(collisions: Any, ego_id: str) -> tuple[str, str]:
+    """The vehicle `ego_id` collided with in this simulation step and where (a
+    `CollisionType`), or ("", "")."""
+    found = NO_COLLISION
     for collision in collisions:
         if collision.collider == ego_id:
-            partner = collision.victim
+            found = (collision.victim, collision_type(collision))
         elif collision.victim == ego_id:
-            partner = collision.collider
-    return partner
+            found = (collision.collider, collision_type(collision))
+    return found
 
 
-def collision_partners(collisions: Any) -> dict[str, str]:
-    """Every vehicle in a collision of this simulation step -> the vehicle it collided with (the
-    last such collision, as `collision_partner`): two egos that collide end both."""
-    partners: dict[str, str] = {}
+def collision_partners(collisions: Any) -> dict[str, tuple[str, str]]:
+    """Every vehicle in a collision of this simulation step -> the vehicle it collided with and
+    where (the last such collision, as `collision_partner`): two egos that collide end both."""
+    partners: dict[str, tuple[str, str]] = {}
     for collision in collisions:
-        partners[collision.collider] = collision.victim
-        partners[collision.victim] = collision.collider
+        kind = collision_type(collision)
+        partners[collision.collider] = (collision.victim, kind)
+        partners[collision.victim] = (collision.collider, kind)
     return partners
+
+
+def collision_type(collision: Any) -> str:
+    """Where a SUMO collision happened: inside a junction (SUMO's type ``junction``, or on a
+    junction's internal lane, whose id starts with ":"), else on a lane."""
+    inside = collision.type == "junction" or str(collision.lane).startswith(":")
+    return CollisionType.JUNCTION if inside else CollisionType.LANE
 
 
 def multi_observation(

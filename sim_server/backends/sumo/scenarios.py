@@ -36,6 +36,7 @@ from sim_server.backends.options import (
     TrafficOptions,
     invalid_option,
 )
+from sim_server.backends.sumo.humans import human_type
 
 ROAD_STEP_LENGTH = 0.1
 """The simulation step of the built-in roads (s), written into their .sumocfg."""
@@ -44,6 +45,11 @@ EGO_ID = "ego"
 EGO_TYPE = "ego"
 EGO_ROUTE = "ego_route"
 HUMAN_TYPE = "human"
+EGO_TYPE_LINE = (
+    f'    <vType id="{EGO_TYPE}" vClass="passenger" accel="3" decel="6" emergencyDecel="9" '
+    'sigma="0" speedFactor="1" speedDev="0" color="0,0,1"/>\n'
+)
+"""The ego's vType in a route file: no imperfection, no speed spread (the client drives it)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,16 +104,25 @@ class RoadScenario:
 
 @dataclass(frozen=True)
 class CustomScenario:
-    """A user's own .sumocfg; the ego drives `ego_route`, defined in the user's route files."""
+    """A user's own .sumocfg; the ego drives `ego_route`, defined in the user's route files, or
+    with ``random`` a trip drawn per seed over the network (`RANDOM_ROUTE`)."""
 
     name: str
     sumocfg: Path
     ego_route: str
 
+    @property
+    def random_route(self) -> bool:
+        """The ego's trip is drawn per seed (``--ego-route random``)."""
+        return self.ego_route == RANDOM_ROUTE
+
     def info(self) -> ScenarioInfo:
-        description = f"user scenario {self.sumocfg} with ego route {self.ego_route!r}"
+        route = "a trip drawn per seed" if self.random_route else f"ego route {self.ego_route!r}"
+        description = f"user scenario {self.sumocfg} with {route}"
         step_length = self.step_length()
         options = {**COMMON_OPTIONS, **SHARE_OPTIONS, **MEASURE_OPTIONS}
+        if self.random_route:
+            options.update(ego_route_min=1000.0, ego_route_max=4000.0, ego_from="", ego_to="")
         interval = options["decision_interval"]
         assert isinstance(interval, float)
         steps = round(interval / step_length)
@@ -122,6 +137,17 @@ class CustomScenario:
         except (OSError, ElementTree.ParseError):
             return 1.0
         return float(found.get("value", "1")) if found is not None else 1.0
+
+    def net_file(self) -> Path:
+        """The network the config names (``<net-file value=.../>``, relative to the config)."""
+        found = ElementTree.parse(self.sumocfg).find(".//net-file")
+        if found is None or not found.get("value"):
+            raise ValueError(f"{self.sumocfg} names no net-file")
+        return (self.sumocfg.parent / found.get("value", "")).resolve()
+
+
+RANDOM_ROUTE = "random"
+"""`CustomScenario.ego_route` that draws the ego's trip per seed."""
 
 
 RING_SPEED_LIMIT = 30 / 3.6
@@ -271,18 +297,28 @@ def default_cache_dir() -> Path:
 
 def find_netconvert() -> str:
     """The netconvert binary from the eclipse-sumo wheel (or a SUMO installation on PATH)."""
-    found = shutil.which("netconvert")
-    if found:
-        return found
+    return find_sumo_tool("netconvert")
+
+
+def find_sumo_tool(name: str) -> str:
+    """A SUMO program (``netconvert``, ``netgenerate``) from the eclipse-sumo wheel or a SUMO
+    installation on PATH; ``data``: SUMO's data folder (the OSM type maps)."""
+    if name != "data":
+        found = shutil.which(name)
+        if found:
+            return found
     try:
         import sumo  # eclipse-sumo wheel
 
-        candidate = Path(sumo.SUMO_HOME) / "bin" / "netconvert"
+        candidate = Path(sumo.SUMO_HOME) / (name if name == "data" else f"bin/{name}")
         if candidate.exists():
             return str(candidate)
     except ImportError:
         pass
-    raise FileNotFoundError("netconvert not found: install eclipse-sumo (pip install eclipse-sumo)")
+    home = os.environ.get("SUMO_HOME")
+    if name == "data" and home:
+        return str(Path(home) / "data")
+    raise FileNotFoundError(f"{name} not found: install eclipse-sumo (pip install eclipse-sumo)")
 
 
 def build_road(
@@ -404,11 +440,8 @@ def _routes(scenario: RoadScenario, traffic: TrafficOptions) -> str:
     )
     return (
         "<routes>\n"
-        f'    <vType id="{HUMAN_TYPE}" vClass="passenger" carFollowModel="Krauss" '
-        f'sigma="{traffic.sigma}" '
-        f'speedFactor="normc({mean},{dev},0.5,1.5)" lcModel="LC2013"/>\n'
-        f'    <vType id="{EGO_TYPE}" vClass="passenger" accel="3" decel="6" emergencyDecel="9" '
-        'sigma="0" speedFactor="1" speedDev="0" color="0,0,1"/>\n'
+        f"{human_type(HUMAN_TYPE, traffic.human_model, traffic.sigma, mean, dev)}"
+        f"{EGO_TYPE_LINE}"
         f'    <route id="{EGO_ROUTE}" edges="road"/>\n'
         f"{flows}"
         "</routes>\n"
@@ -485,6 +518,7 @@ def sumo_config() -> str:
         "    <processing>\n"
         '        <collision.action value="warn"/>\n'
         '        <collision.mingap-factor value="0"/>\n'
+        '        <collision.check-junctions value="true"/>\n'
         '        <time-to-teleport value="-1"/>\n'
         '        <lanechange.duration value="2"/>\n'
         "    </processing>\n"

@@ -36,6 +36,7 @@ from protocol.messages import (
     Observation,
     Reset,
     Road,
+    Route,
     Safety,
     ScenarioInfo,
     Step,
@@ -219,6 +220,25 @@ STEP_CASES: list[tuple[str, Breaker, str]] = [
      "observation.safety.conflicts[0].end"),
     ("stop line behind", lambda o: replace(o, road=Road(ROAD_RANGE, 0, 0.0, 0.0, -3.0)),
      "observation.road.stop_line"),
+    ("unknown light", lambda o: replace(
+        o, road=Road(ROAD_RANGE, 0, 0.0, 0.0, signal_distance=40.0, signal_state="blue")),
+     "observation.road.signal_state"),
+    ("light beyond the road", lambda o: replace(
+        o, road=Road(ROAD_RANGE, 0, 0.0, 0.0, signal_distance=2000.0, signal_state="red")),
+     "observation.road.signal_distance"),
+    ("light far in time", lambda o: replace(
+        o, road=Road(ROAD_RANGE, 0, 0.0, 0.0, signal_distance=40.0, signal_state="red",
+                     signal_switch=500.0)),
+     "observation.road.signal_switch"),
+    ("a light without a state", lambda o: replace(
+        o, road=Road(ROAD_RANGE, 0, 0.0, 0.0, signal_distance=40.0)),
+     "observation.road.signal_state"),
+    ("collision type unasked", _events(collision_type="junction"),
+     "observation.events.collision_type"),
+    ("red light reason", lambda o: replace(o, terminated=True, reason="red_light"),
+     "observation.reason"),
+    ("route running", lambda o: replace(o, route=Route(("a", "b"), 100.0, 1)),
+     "observation.route"),
     ("traffic columns", lambda o: replace(
         o, traffic=Traffic(("a", "b"), ("h", "h"), (0,), (1.0, 2.0), (1.0, 2.0), (0.0, 0.0),
                            ("", ""), (200.0, 200.0), (0.0, 0.0))),
@@ -309,6 +329,26 @@ def test_a_newer_minor_server_may_add_values() -> None:
     )
     assert check.check(Step(1, 0.5), _action(acceleration_limited_by="grip")(ended)) is not None
     assert refused(checker(), Step(1, 0.5), ended).field == "observation.reason"
+
+
+def test_signals_red_lights_and_routes_of_1_8_pass() -> None:
+    first, after = episode()
+    route = Route(("a", "b", "c"), 310.0, 1)
+    check = checker(after_reset=False)
+    assert check.check(Reset("fake", 1), replace(first, route=route)) is not None
+    light = Road(ROAD_RANGE, 0, 0.0, 0.0, 35.0, 35.0, "red", 12.5)
+    passed = replace(after, road=light, events=replace(after.events, red_light=True))
+    assert check.check(Step(1, 0.5), passed) is not None
+    crash = replace(
+        after,
+        terminated=True,
+        reason="red_light",
+        events=replace(after.events, red_light=True),
+        route=replace(route, driven=2),
+    )
+    assert checker().check(Step(1, 0.5), crash) is not None
+    beyond = replace(crash, route=replace(route, driven=4))
+    assert refused(checker(), Step(1, 0.5), beyond).field == "observation.route.driven"
 
 
 def test_events_stay_false_when_nothing_happened() -> None:

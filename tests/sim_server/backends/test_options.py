@@ -26,8 +26,8 @@ def refusal(call: object) -> str:
 def test_the_announced_defaults_are_the_dataclass_defaults_in_order() -> None:
     assert list(COMMON_OPTIONS) == [
         "decision_interval", "max_episode_time", "warmup", "insertion_timeout", "stop_speed",
-        "stop_gap", "stop_patience", "lane_end_patience", "report_ceiling", "ego_driver",
-        "egos",
+        "stop_gap", "stop_patience", "lane_end_patience", "jam_patience", "end_on_red_light",
+        "report_ceiling", "ego_driver", "egos",
     ]  # fmt: skip
     assert COMMON_OPTIONS["warmup"] == 30.0 and COMMON_OPTIONS["report_ceiling"] is True
     assert TRAFFIC_OPTIONS == {
@@ -35,9 +35,10 @@ def test_the_announced_defaults_are_the_dataclass_defaults_in_order() -> None:
         "speed_factor_mean": 0.85,
         "speed_factor_dev": 0.15,
         "sigma": 0.5,
+        "human_model": "krauss",
     }
     # The wire type of each default is that of the field: a float stays a float.
-    assert all(type(v) is float for v in TRAFFIC_OPTIONS.values())
+    assert all(type(v) is float for k, v in TRAFFIC_OPTIONS.items() if k != "human_model")
     assert EpisodeOptions.parse(COMMON_OPTIONS) == EpisodeOptions()
 
 

@@ -323,3 +323,41 @@ def test_a_stop_that_began_at_a_stop_line_has_the_lane_ends_patience_once_it_cle
         for t, v, road in zip(times, speeds, roads, strict=True)
     ]
     assert found.index(EndReason.STOPPED) == 41
+
+
+def test_waiting_for_a_gap_to_the_lane_the_route_needs_is_no_unreasonable_stop() -> None:
+    """The ego stands 60 m before the end of the lane it must leave (a turn at a red light, a
+    gap to wait for), nobody ahead: it waits, as it would at the lane's end (SUMO's own driver
+    ended `stopped` so in 2 of 5 city episodes before)."""
+    before_the_turn = Road(
+        lane_end=60.0, lanes_to_change=-1, left_lane_end=0.0, right_lane_end=ROAD_RANGE
+    )
+    found = at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 60, before_the_turn)
+    assert found == [None] * 60
+    two_lanes_away = replace(before_the_turn, lane_end=250.0, lanes_to_change=-2)
+    assert at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 60, two_lanes_away) == [None] * 60
+    too_far = replace(before_the_turn, lane_end=400.0)  # farther than 150 m per lane
+    assert at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 21, too_far)[20] is EndReason.STOPPED
+
+
+def test_standing_for_the_jam_patience_ends_as_jammed_whatever_holds_the_ego() -> None:
+    rule = EndRule(replace(OPTIONS, jam_patience=3.0, max_episode_time=100.0), ENTRY)
+    queue = Neighbour(True, 4.0, 0.0, 0.0, "stopped ahead")
+    found = verdicts(rule, [0.0] * 31, queue)
+    assert found[:30] == [None] * 30  # a queue: no unreasonable stop, still patient
+    assert found[30] is EndReason.JAMMED and EndReason.JAMMED.terminates
+    rule = EndRule(replace(OPTIONS, jam_patience=3.0, max_episode_time=100.0), ENTRY)
+    assert EndReason.JAMMED not in verdicts(rule, ([0.0] * 25 + [1.5]) * 3, queue)  # it moves
+    at_a_light = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=2.0)
+    rule = EndRule(replace(OPTIONS, jam_patience=3.0, max_episode_time=100.0), ENTRY)
+    assert at_lane_end(rule, [0.0] * 31, at_a_light)[30] is EndReason.JAMMED
+
+
+def test_a_red_light_passed_ends_the_episode_only_where_the_option_asks() -> None:
+    passed = Events(red_light=True)
+    obs = observation(ENTRY + 1.0, 12.0, events=passed)
+    assert EndRule(OPTIONS, ENTRY).check(obs) is None  # reported, the drive goes on
+    ending = EndRule(replace(OPTIONS, end_on_red_light=True), ENTRY)
+    assert ending.check(obs) is EndReason.RED_LIGHT and EndReason.RED_LIGHT.terminates
+    crash = replace(obs, events=Events(collision=True, collision_with="h1", red_light=True))
+    assert ending.check(crash) is EndReason.COLLISION  # a collision comes first

@@ -1,0 +1,103 @@
+"""Who has priority over the ego's way through its next junction: the foes it must give way to.
+
+SUMO knows, for a connection from one lane to another, the incoming lanes whose own connections
+have priority over it (`lane.getFoes`: the junction's right of way; at a traffic light, the
+lanes whose links are green with priority while the ego's is a permissive green). The vehicles
+on those lanes that are coming (their lane's links not red) and near, and those already inside
+the junction on a conflicting internal lane, are the foes `road.stop_line` weighs: whether the
+ego can leave the conflict area before one of them arrives. A vehicle turning left across
+oncoming traffic is looked at twice: before the junction, and at the waiting point inside it
+(SUMO's internal junction), where it stands while the oncoming stream passes.
+
+Source: SUMO docs, TraCI "Lane Value Retrieval" (foes 0x37, links 0x33); "Networks/SUMO Road
+Networks" (internal junctions, right of way).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sim_server.backends.sumo.road import Foe
+
+FOE_HORIZON = 150.0
+"""m before the junction within which a vehicle with priority is looked at."""
+CROSSING_LENGTH = 20.0
+"""m a foe drives through the conflict area (about a junction's size)."""
+NOT_COMING = frozenset("ru")
+"""Link states of a foe lane whose vehicles do not enter now: red, red-yellow."""
+BLOCKING_LOOK = 30.0
+"""m before the junction from which a vehicle standing or driving inside it, across the ego's
+way, closes the way even to an ego with priority (it must not drive into a blocked junction)."""
+BLOCKING_TIME = 2.0
+"""s: also from as far as the ego drives in this time."""
+
+
+class JunctionFoes:
+    """The foes of a connection, from SUMO's right of way (the foe lanes of each connection
+    asked once per network)."""
+
+    def __init__(self, api: Any) -> None:
+        self._api = api
+        self._lanes: dict[tuple[str, str], tuple[str, ...]] = {}
+        self._crossing: dict[str, tuple[str, ...]] = {}
+        self._waits: dict[str, bool] = {}
+        self._lengths: dict[str, float] = {}
+
+    def of(self, from_lane: str, to_lane: str, ego_exit: float) -> tuple[Foe, ...]:
+        """The foes of the connection `from_lane` -> `to_lane`; `ego_exit` is the ego's
+        distance to where it has left the conflict area."""
+        lane_api, vehicle = self._api.lane, self._api.vehicle
+        key = (from_lane, to_lane)
+        lanes = self._lanes.get(key)
+        if lanes is None:
+            lanes = self._lanes[key] = tuple(sorted(set(lane_api.getFoes(from_lane, to_lane))))
+        found: list[Foe] = []
+        for lane in lanes:
+            vehicles = lane_api.getLastStepVehicleIDs(lane)
+            if not vehicles:
+                continue
+            if lane.startswith(":"):  # inside the junction now, in the way
+                found += [
+                    Foe(0.0, CROSSING_LENGTH, vehicle.getSpeed(v), ego_exit) for v in vehicles
+                ]
+                continue
+            states = {link[5] for link in lane_api.getLinks(lane)}
+            if states and states <= NOT_COMING:
+                continue
+            length = self._length(lane)
+            for other in vehicles:
+                distance = length - vehicle.getLanePosition(other)
+                if distance <= FOE_HORIZON:
+                    speed = vehicle.getSpeed(other)
+                    found.append(Foe(distance, distance + CROSSING_LENGTH, speed, ego_exit))
+        return tuple(found)
+
+    def waits_inside(self, via: str) -> bool:
+        """Whether the junction lane `via` ends at a waiting point inside the junction (SUMO's
+        internal junction: a turn across oncoming traffic, which the ego may drive up to and
+        wait at, as SUMO's drivers do, the oncoming stream judged there)."""
+        known = self._waits.get(via)
+        if known is None:
+            known = self._waits[via] = any(
+                str(link[4]).startswith(":") for link in self._api.lane.getLinks(via)
+            )
+        return known
+
+    def inside(self, via: str, ego_exit: float) -> tuple[Foe, ...]:
+        """The vehicles inside the junction now on a lane that crosses or merges with the
+        ego's junction lane `via` (whoever has priority: they are in the way)."""
+        lane_api, vehicle = self._api.lane, self._api.vehicle
+        crossing = self._crossing.get(via)
+        if crossing is None:
+            crossing = self._crossing[via] = tuple(sorted(set(lane_api.getInternalFoes(via))))
+        found: list[Foe] = []
+        for lane in crossing:
+            for other in lane_api.getLastStepVehicleIDs(lane):
+                found.append(Foe(0.0, CROSSING_LENGTH, vehicle.getSpeed(other), ego_exit))
+        return tuple(found)
+
+    def _length(self, lane: str) -> float:
+        length = self._lengths.get(lane)
+        if length is None:
+            length = self._lengths[lane] = self._api.lane.getLength(lane)
+        return length

@@ -1,0 +1,208 @@
+"""Traffic lights on the wire, in real SUMO (protocol 1.8): the next light's state, a red light
+passed as an event of its own, junction collisions named, the ego's route; on the built-in city
+(``urban``)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import subprocess
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from agent_client.drivers.idm import IDMDriver, IDMParams, idm_acceleration
+from agent_client.drivers.mobil import IDMMobilDriver
+from protocol.messages import (
+    ROAD_RANGE,
+    SIGNAL_HORIZON,
+    CollisionType,
+    EndReason,
+    Observation,
+    OptionValue,
+    SignalState,
+)
+from sim_server.backends.sumo.backend import SumoBackend
+from sim_server.backends.sumo.scenarios import CustomScenario, find_netconvert
+
+pytestmark = pytest.mark.sumo
+
+SMALL_CITY: dict[str, OptionValue] = {
+    "columns": 3,
+    "rows": 3,
+    "block_length": 150.0,
+    "lanes": 1,
+    "street_speed": 50 / 3.6,
+    "cycle_time": 60.0,
+    "warmup": 30.0,
+    "traffic": 40.0,
+    "ego_route_min": 400.0,
+    "ego_route_max": 900.0,
+    "max_episode_time": 240.0,
+}
+"""One grid of the city, small enough for a test (its lights' offsets still drawn per seed)."""
+
+Act = Callable[[Observation], tuple[float, int]]
+
+
+def write_crossing(folder: Path) -> Path:
+    """A side street crossing a busy main road (600 veh/h each way) at a junction where it
+    gives way; the ego's route ``across`` crosses. Returns the .sumocfg."""
+    (folder / "x.nod.xml").write_text(
+        '<nodes><node id="w" x="0" y="0"/><node id="e" x="600" y="0"/>'
+        '<node id="j" x="300" y="0" type="priority"/>'
+        '<node id="s" x="300" y="-200"/><node id="n" x="300" y="200"/></nodes>\n'
+    )
+    (folder / "x.edg.xml").write_text(
+        "<edges>"
+        '<edge id="we" from="w" to="j" numLanes="1" speed="14" priority="3"/>'
+        '<edge id="je" from="j" to="e" numLanes="1" speed="14" priority="3"/>'
+        '<edge id="ew" from="e" to="j" numLanes="1" speed="14" priority="3"/>'
+        '<edge id="jw" from="j" to="w" numLanes="1" speed="14" priority="3"/>'
+        '<edge id="sj" from="s" to="j" numLanes="1" speed="14" priority="1"/>'
+        '<edge id="jn" from="j" to="n" numLanes="1" speed="14" priority="1"/>'
+        "</edges>\n"
+    )
+    subprocess.run(
+        [find_netconvert(), "--node-files", str(folder / "x.nod.xml"),
+         "--edge-files", str(folder / "x.edg.xml"), "--output-file", str(folder / "x.net.xml"),
+         "--no-turnarounds", "true"],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    (folder / "x.rou.xml").write_text(
+        '<routes><route id="east" edges="we je"/><route id="west" edges="ew jw"/>'
+        '<route id="across" edges="sj jn"/>'
+        '<flow id="e" route="east" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
+        '<flow id="w" route="west" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
+        "</routes>\n"
+    )
+    config = folder / "x.sumocfg"
+    config.write_text(
+        '<configuration><input><net-file value="x.net.xml"/><route-files value="x.rou.xml"/>'
+        '</input><time><step-length value="0.1"/></time></configuration>\n'
+    )
+    return config
+
+
+@pytest.fixture(scope="module")
+def backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
+    crossing = CustomScenario("crossing", write_crossing(tmp_path_factory.mktemp("x")), "across")
+    sumo = SumoBackend(cache_dir=tmp_path_factory.mktemp("city"), custom=(crossing,))
+    yield sumo
+    sumo.close()
+
+
+def drive(backend: SumoBackend, act: Act, seed: int, **options: OptionValue) -> list[Observation]:
+    """One episode on the small city; every observation."""
+    info = {s.name: s for s in backend.scenarios()}["urban"]
+    obs = backend.reset("urban", seed, {**info.options, **SMALL_CITY, **options})
+    seen = [obs]
+    while not (obs.terminated or obs.truncated):
+        obs = backend.step(obs.seq + 1, *act(obs))
+        seen.append(obs)
+    return seen
+
+
+def blind(obs: Observation) -> tuple[float, int]:
+    """IDM that follows its leader and ignores every light and right of way."""
+    leader = obs.neighbours.leader
+    gap = leader.gap if leader.present else None
+    return idm_acceleration(IDMParams(), obs.ego.speed, obs.ego.speed_limit, gap, leader.speed), 0
+
+
+def test_a_driver_blind_to_the_lights_passes_a_red_one_and_idm_on_the_same_seed_does_not(
+    backend: SumoBackend,
+) -> None:
+    for seed in range(12):
+        seen = drive(backend, blind, seed)
+        if sum(o.events.red_light for o in seen):
+            break
+    else:
+        pytest.fail("the blind driver passed no red light on 12 seeds")
+    passed = [o for o in seen if o.events.red_light]
+    before = seen[seen.index(passed[0]) - 1]
+    assert before.road is not None and before.road.signal_state == SignalState.RED
+    assert before.road.signal_distance < 15.0  # it was right before the line, at red
+    careful = drive(backend, IDMDriver().act, seed)
+    assert not any(o.events.red_light for o in careful)
+    assert careful[-1].reason == EndReason.END_OF_ROAD
+
+
+def test_a_red_light_passed_ends_the_episode_where_the_option_asks(backend: SumoBackend) -> None:
+    for seed in range(12):
+        seen = drive(backend, blind, seed, end_on_red_light=True)
+        if seen[-1].reason == EndReason.RED_LIGHT:
+            assert seen[-1].events.red_light and seen[-1].terminated
+            assert not any(o.events.red_light for o in seen[:-1])
+            return
+    pytest.fail("no episode ended at a red light")
+
+
+def test_the_next_light_is_on_every_observation_and_stop_line_follows_a_red_one(
+    backend: SumoBackend,
+) -> None:
+    seen = drive(backend, IDMMobilDriver().act, 3)
+    roads = [o.road for o in seen if o.road is not None]
+    assert len(roads) == len(seen)
+    states = {road.signal_state for road in roads}
+    assert SignalState.GREEN in states and states <= set(SignalState)
+    for road in roads:
+        assert 0.0 <= road.signal_switch <= SIGNAL_HORIZON
+        if road.signal_state == SignalState.NONE:
+            assert road.signal_distance == ROAD_RANGE and road.signal_switch == 0.0
+        if road.signal_state == SignalState.RED:
+            assert road.stop_line <= road.signal_distance + 1e-6  # the light closes the way
+    # the seconds to the change count down between two observations at the same light
+    pairs = [
+        (a, b)
+        for a, b in itertools.pairwise(roads)
+        if a.signal_state == b.signal_state != SignalState.NONE and a.signal_switch > 1.0
+    ]
+    assert pairs and all(
+        b.signal_switch == pytest.approx(a.signal_switch - 0.1) for a, b in pairs[:50]
+    )
+
+
+def test_the_route_is_reported_on_the_first_and_the_last_observation(backend: SumoBackend) -> None:
+    seen = drive(backend, IDMMobilDriver().act, 5)
+    first, last = seen[0].route, seen[-1].route
+    assert first is not None and last is not None
+    assert all(o.route is None for o in seen[1:-1])
+    assert first.edges == last.edges and len(first.edges) >= 2
+    assert SMALL_CITY["ego_route_min"] <= first.length  # type: ignore[operator]
+    assert first.driven == 1
+    assert seen[-1].reason == EndReason.END_OF_ROAD and last.driven == len(last.edges)
+    assert math.isclose(seen[-1].ego.position, first.length, rel_tol=0.05)
+    other = drive(backend, IDMMobilDriver().act, 6)[0].route
+    assert other is not None and other.edges != first.edges  # another seed, another trip
+
+
+def test_a_collision_inside_a_junction_is_named_so(backend: SumoBackend) -> None:
+    """Blind to the right of way, the ego crosses a busy main road: it collides inside the
+    junction (SUMO's junction collision check, on for every scenario); IDM + MOBIL, which
+    waits at the stop line while the main road's traffic approaches, crosses unharmed."""
+    info = {s.name: s for s in backend.scenarios()}["crossing"]
+    kinds = []
+    for seed in range(10):
+        obs = backend.reset("crossing", seed, dict(info.options))
+        while not (obs.terminated or obs.truncated):
+            obs = backend.step(obs.seq + 1, *blind(obs))
+        kinds.append(obs.events.collision_type if obs.reason == EndReason.COLLISION else "")
+    assert kinds.count(CollisionType.JUNCTION) >= 3 and CollisionType.LANE not in kinds, kinds
+    for seed in range(5):
+        obs = backend.reset("crossing", seed, dict(info.options))
+        driver = IDMMobilDriver()
+        while not (obs.terminated or obs.truncated):
+            obs = backend.step(obs.seq + 1, *driver.act(obs))
+        assert obs.reason == EndReason.END_OF_ROAD and obs.events.collision_type == ""
+
+
+def test_the_city_is_drawn_from_the_seed(backend: SumoBackend, tmp_path: Path) -> None:
+    info = {s.name: s for s in backend.scenarios()}["urban"]
+    grids = set()
+    for seed in range(6):
+        backend.reset("urban", seed, {**info.options, "warmup": 0.0, "traffic": 0.0})
+        api = backend._api
+        grids.add((api.junction.getIDCount(), api.trafficlight.getIDCount(), api.lane.getIDCount()))
+    assert len(grids) > 1
