@@ -31,6 +31,9 @@ TRAINING_EVALUATION_SEED = 100_000
 EVALUATION_SEED = 200_000
 """First seed of `agent-client evaluate`: disjoint from training and from the evaluations that
 chose the policy."""
+TEST_SEED = 500_000
+"""First of the table's test seeds (benchmarks/test_seeds.json): fixed before any result on
+them, never trained, evaluated during training or tuned on."""
 CALIBRATION_SEED = 300_000
 """First seed of the episodes recorded for `agent-client calibrate-idm`."""
 CALIBRATION_EPISODES = 5
