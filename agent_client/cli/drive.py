@@ -94,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
             f"avg speed {totals['average_speed']:.2f} m/s (sd {totals['average_speed_sd']:.2f}), "
             f"{ceiling} | "
             f"collisions/episode {totals['collisions_per_episode']:.2f} | "
+            f"red lights/episode {totals['red_lights_per_episode']:.2f} | "
+            f"arrived {100 * totals['arrival_share']:.0f}% | "
             f"jerk>5.6 {100 * totals['jerk_share_above_limit']:.2f}% | "
             f"headway<1s {100 * totals['headway_share_below_1s']:.2f}%"
         )

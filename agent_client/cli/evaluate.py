@@ -103,11 +103,14 @@ def evaluation_command(args: argparse.Namespace, scenario: str, out: Path) -> st
 
 def default_out(policy: str) -> Path:
     """``runs/NAME/eval`` next to a policy file; ``runs/eval-MODEL`` for the model drivers
-    (``runs/eval-idm``, ``runs/eval-idm+mobil``, ``runs/eval-sumo``)."""
+    (``runs/eval-idm``, ``runs/eval-idm+mobil``, ``runs/eval-sumo``) and
+    ``runs/eval-pretrained-NAME`` for a shipped policy."""
     from agent_client.drivers.spec import is_model
 
     if is_model(policy):
         return Path("runs") / f"eval-{policy.split(':')[0]}"
+    if policy.startswith("pretrained:"):  # not into the package's folder
+        return Path("runs") / f"eval-{policy.replace(':', '-')}"
     return Path(policy).parent / "eval"
 
 

@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from agent_client.drivers.safety import Override
 from agent_client.envs.remote_env import RemoteEnv
 from protocol.messages import Observation, OptionValue
 
@@ -25,6 +26,9 @@ class Episode:
     observations: list[Observation] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
     """rewards[i] is the reward of the step from observations[i] to observations[i + 1]."""
+    overrides: list[Override] = field(default_factory=list)
+    """overrides[i]: what a safety layer changed of the decision taken on observations[i]
+    (`agent_client.drivers.safety`; empty for a driver without one)."""
 
     def add(self, obs: Observation, reward: float = 0.0) -> None:
         """Append an observation (the reward of the step to it is ignored for the first)."""
@@ -37,7 +41,8 @@ class Driver(Protocol):
     """Anything that maps a named observation to (acceleration m/s^2, lane change).
 
     A driver may also name reset options its episodes need (`reset_options`): the simulator's
-    own driver asks for ``ego_driver``."""
+    own driver asks for ``ego_driver``; and one with a safety layer says what it overrode in its
+    last decision (`override`, read after each `act`)."""
 
     def act(self, obs: Observation) -> tuple[float, int]: ...
 
@@ -65,6 +70,9 @@ def run_episode(
     recorder.add(obs)
     while True:
         action = driver.act(obs)
+        override = getattr(driver, "override", None)
+        if override is not None:
+            recorder.overrides.append(override)
         env.send_command(*action)
         after, reward = env.receive_observation()
         recorder.add(after, reward)

@@ -16,6 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from agent_client.drivers.mobil import DECISION_INTERVAL, IDMMobilDriver, MobilParams, jerk_limited
+from agent_client.drivers.safety import NONE as NO_OVERRIDE
+from agent_client.drivers.safety import SafetyLayer
 from agent_client.rl.features import FeatureMap, FeatureMismatch
 from agent_client.rl.greedy import GreedyPolicy
 from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
@@ -26,6 +28,9 @@ RESIDUAL_RANGE = 2.0
 where the drive is not at stake (`Reference.at_stake`)."""
 
 STOP_DECELERATION = MobilParams().stop_deceleration
+MAX_INTERVAL = 60.0
+"""s: the longest decision interval a simulator offers (an observation further apart than this
+from the last one seen belongs to another episode, and says nothing of the interval)."""
 """m/s²: harder braking than this is applied at once, as the reference applies it."""
 
 
@@ -52,10 +57,12 @@ REFERENCES: dict[str, Reference] = {
 """The drivers a policy can be trained on top of."""
 
 
-def lane_choice(n_choices: int, every: int, gap_rule: bool, residual: str = "") -> LaneChoice:
+def lane_choice(
+    n_choices: int, every: int, gap_rule: bool, residual: str = "", route_masks: bool = True
+) -> LaneChoice:
     """The lane choice of a policy; a residual one changes lanes as its reference does."""
     reference = REFERENCES[residual].lane_change if residual and n_choices > 1 else None
-    return LaneChoice(n_choices, every, gap_rule, reference)
+    return LaneChoice(n_choices, every, gap_rule, route_masks, reference)
 
 
 @dataclass(frozen=True)
@@ -135,16 +142,24 @@ class PolicyDriver:
         self.features = features
         self.scale = scale
         self.lanes = lanes
+        self.layer = SafetyLayer(scale.interval, scale.low)
+        """Overrides a decision only where a stated rule says the drive is at stake."""
+        self.override = NO_OVERRIDE
+        """What the layer changed of the last decision (the episode loop counts it)."""
         self._last_time = -math.inf
 
     def act(self, obs: Observation) -> tuple[float, int]:
-        if obs.seq > 0 and obs.time > self._last_time:
+        if obs.seq > 0 and self._last_time < obs.time < self._last_time + MAX_INTERVAL:
             interval = obs.time - self._last_time
             if abs(interval - self.scale.interval) > 1e-9:
                 self.scale = replace(self.scale, interval=interval)
+                self.layer = SafetyLayer(interval, self.scale.low)
         self._last_time = obs.time
         u, lane = self.policy.act(self.features(obs), self.lanes.mask(obs))
-        return self.scale.to_env(u, obs), LANE_COMMANDS[lane]
+        acceleration, command, self.override = self.layer.apply(
+            obs, self.scale.to_env(u, obs), LANE_COMMANDS[lane]
+        )
+        return acceleration, command
 
 
 def save_policy(
@@ -163,6 +178,7 @@ def save_policy(
         "features": features.name,
         "lane_decision_every": lanes.every,
         "lane_gap_rule": lanes.gap_rule,
+        "lane_route_masks": lanes.route_masks,
         "acceleration_bounds": [scale.low, scale.high],
         "residual": scale.residual,
         "decision_interval": scale.interval,
@@ -188,7 +204,8 @@ def load_policy_driver(path: Path) -> PolicyDriver:
             "version): train it again"
         )
     residual = str(state.get("residual", ""))  # "" in older files
-    lanes = lane_choice(policy.n_lane_actions, every, gap_rule, residual)
+    route_masks = bool(state.get("lane_route_masks", True))  # on in files from before it
+    lanes = lane_choice(policy.n_lane_actions, every, gap_rule, residual, route_masks)
     interval = float(state.get("decision_interval", DECISION_INTERVAL))
     scale = ActionScale(low, high, residual, interval)
     return PolicyDriver(policy, features, scale, lanes)

@@ -5,7 +5,9 @@
   route needs (`agent_client.drivers.mobil`);
 * ``sumo``: the simulator's own driver model (the reset option ``ego_driver``; the client only
   watches);
-* ``runs/NAME/policy.pt``: a trained policy.
+* ``runs/NAME/policy.pt``: a trained policy;
+* ``pretrained:NAME``: a policy the project ships (``pretrained:cf``, ``pretrained:cflc``,
+  ``pretrained:roads``; `agent_client.drivers.pretrained`, each with a model card).
 
 `load_driver` is the one parser of these specs (drive, evaluate, the baselines, the trainer's
 reference); every bad spec is a `UsageError` that names it, before any connection is opened.
@@ -18,6 +20,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from agent_client.drivers import pretrained
 from agent_client.drivers.episode import Driver, SimulatorDriver
 from agent_client.drivers.idm import IDMDriver, IDMParams
 from agent_client.drivers.mobil import IDMMobilDriver
@@ -53,11 +56,12 @@ def load_driver(spec: str) -> Driver:
         return IDMMobilDriver(load_idm_params(Path(spec[len(IDM_MOBIL_PREFIX) :])))
     if spec == SIMULATOR:
         return SimulatorDriver()
-    path = Path(spec)
+    path = policy_path(spec)
     if not path.is_file():
         raise UsageError(
             f"driver {spec!r}: no such file; give idm, idm+mobil, sumo (each idm one also "
-            "with :PARAMS.json) or a policy file (runs/NAME/policy.pt)"
+            "with :PARAMS.json), a policy file (runs/NAME/policy.pt) or pretrained:NAME "
+            f"({', '.join(pretrained.names()) or 'none shipped'})"
         )
     from agent_client.drivers.policy import load_policy_driver
 
@@ -65,6 +69,15 @@ def load_driver(spec: str) -> Driver:
         return load_policy_driver(path)
     except ValueError as exc:
         raise UsageError(f"driver {spec!r}: {exc}") from exc
+
+
+def policy_path(spec: str) -> Path:
+    """The file a policy spec names: a path, or a shipped policy's (``pretrained:NAME``; a
+    name that is not shipped gives a path that does not exist)."""
+    if spec.startswith(pretrained.PREFIX):
+        name = spec.removeprefix(pretrained.PREFIX)
+        return pretrained.policy_file(name) or Path(f"<no shipped policy {name!r}>")
+    return Path(spec)
 
 
 def load_idm_params(path: Path) -> IDMParams:
@@ -97,10 +110,15 @@ def training_settings(spec: str) -> tuple[str | list[str] | None, dict[str, Any]
     """
     if is_model(spec):
         return None, {}
-    config = Path(spec).parent / "config.json"
-    if not config.is_file():
-        return None, {}
-    saved = json.loads(config.read_text())
+    if spec.startswith(pretrained.PREFIX):
+        saved = pretrained.settings(spec.removeprefix(pretrained.PREFIX))
+        if not saved:
+            return None, {}
+    else:
+        config = Path(spec).parent / "config.json"
+        if not config.is_file():
+            return None, {}
+        saved = json.loads(config.read_text())
     options = {"decision_interval": saved.get("decision_interval", 0.1)}
     options.update(saved.get("scenario_options") or {})
     return saved.get("scenario"), options

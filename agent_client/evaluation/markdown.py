@@ -129,6 +129,9 @@ def _cf_rows(drivers: list[Figures], paper: dict[str, Any]) -> list[list[str]]:
          lambda d: _f(d["speed_ratio_to_ceiling"], 3), "not reported"),
         ("collisions per episode (episodes with one)",
          lambda d: f"{_f(d['collisions_per_episode'])} ({d['episodes_with_collision']})", ""),
+        ("red lights passed per episode (episodes with one)",
+         lambda d: f"{_f(d.get('red_lights_per_episode', 0.0))} "
+                   f"({d.get('episodes_with_red_light', 0)})", ""),
         (f"jerk samples above {JERK_COMFORT_LIMIT} m/s^3",
          lambda d: _pct(d["jerk_share_above_limit"], 2),
          f"DRL {_pct(paper['drl_jerk_share_above_limit'])}"),

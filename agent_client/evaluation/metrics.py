@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -139,6 +140,20 @@ class EpisodeSummary:
     route_lanes: int = 0
     """The most lanes the route asked the ego to cross at once (`Road.lanes_to_change`): above
     0 on a road with a lane end or an exit, where reaching the end of the route is a target."""
+    red_lights: int = 0
+    """Red lights the ego passed (`Events.red_light`, protocol 1.8)."""
+    collision_type: str = ""
+    """Where its collision happened ("lane", "junction"; "" without one)."""
+    route_length: float | None = None
+    """m of the ego's route (`Observation.route`, protocol 1.8; None where not reported)."""
+    route_edges: str = ""
+    """The roads of the route the ego entered, space-separated, in order: the trip, traceable
+    (where the simulator reports routes)."""
+    safety_steps: int = 0
+    """Decisions in which a safety layer overrode the driver (its acceleration or its lane
+    change; `agent_client.drivers.safety`): 0 for a driver without one."""
+    safety_lane_changes: int = 0
+    """Lane changes the safety layer decided that started."""
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -182,7 +197,27 @@ def episode_summary(episode: Episode) -> EpisodeSummary:
         lane_changes_aborted=sum(o.events.lane_change_aborted for o in observations),
         headway_samples=len(headways),
         route_lanes=max((abs(o.road.lanes_to_change) for o in observations if o.road), default=0),
+        red_lights=sum(o.events.red_light for o in observations),
+        safety_steps=sum(o.any for o in episode.overrides),
+        safety_lane_changes=sum(
+            o.lane_change and after.events.lane_change_started
+            for o, after in zip(episode.overrides, observations[1:], strict=False)
+        ),
+        collision_type=next(
+            (o.events.collision_type for o in observations if o.events.collision), ""
+        ),
+        **_route(first, last),
     )
+
+
+def _route(first: Observation, last: Observation) -> dict[str, Any]:
+    """The route's length and the roads of it the ego entered, from the first and the last
+    observation (empty where the simulator reports no route)."""
+    route = last.route or first.route
+    if route is None:
+        return {}
+    driven = route.driven if last.route is not None else 1
+    return {"route_length": route.length, "route_edges": " ".join(route.edges[:driven])}
 
 
 def _successful_lc_reward(episode: Episode) -> float:
@@ -201,10 +236,11 @@ def format_summary(summary: EpisodeSummary) -> str:
         else "  n/a"
     )
     ttc = f"{summary.min_ttc:6.2f} s" if summary.min_ttc is not None else "    n/a"
+    red = f"red lights {summary.red_lights} | " if summary.red_lights else ""
     return (
         f"episode {summary.episode:3d} seed {summary.seed:10d} | {summary.steps:5d} steps "
         f"{summary.reason:12s} | avg speed {summary.average_speed:5.2f} m/s, ceiling {ceiling} | "
-        f"collisions {summary.collisions} | "
+        f"collisions {summary.collisions} | {red}"
         f"jerk>{JERK_COMFORT_LIMIT} {100 * summary.jerk_share_above_limit:5.1f}% | "
         f"headway<{HEADWAY_SAFE:g}s {100 * summary.headway_share_below_1s:5.1f}% | min TTC {ttc}"
     )
@@ -229,6 +265,8 @@ def aggregate(summaries: Sequence[EpisodeSummary]) -> dict[str, float]:
         "average_speed": float(np.mean(speeds)),
         "average_speed_sd": float(np.std(speeds)),
         "collisions_per_episode": float(np.mean([s.collisions for s in summaries])),
+        "red_lights_per_episode": float(np.mean([s.red_lights for s in summaries])),
+        "safety_share": float(sum(s.safety_steps for s in summaries) / max(1.0, steps.sum())),
         "jerk_share_above_limit": float(
             np.dot(weights, [s.jerk_share_above_limit for s in summaries])
         ),

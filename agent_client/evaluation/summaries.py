@@ -100,6 +100,7 @@ def summarise(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
         {
             "ceiling_speed": float(np.mean(ceilings)) if ceilings else None,
             "episodes_with_collision": sum(s.collisions > 0 for s in summaries),
+            "episodes_with_red_light": sum(s.red_lights > 0 for s in summaries),
             "max_abs_jerk": float(np.max(np.abs(jerks))) if len(jerks) else 0.0,
             "headway": headway_stats(headways),
             "min_time_headway": float(headways.min()) if len(headways) else None,

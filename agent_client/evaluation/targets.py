@@ -20,16 +20,25 @@ HEADWAY_TARGET = 0.05
 """Share of time headways under 1 s allowed."""
 CEILING_TARGET = 0.98
 """Average speed required, as a share of the leader-at-entry ceiling."""
+SAFETY_TARGET = 0.02
+"""Share of decisions the safety layer may have overridden (`agent_client.drivers.safety`): a
+policy that needs the shield more often has not learned the rules it enforces."""
 BOUND_SLACK = 1e-3
 """Relative margin on a speed bound in `FailureScreen`: measurement at the road's end (the
 last observation, the leader's arrival step) may put a driver a hair above its ceiling."""
 
 
-def targets_met(policy: Mapping[str, float], idm: Mapping[str, float]) -> dict[str, bool]:
+def targets_met(
+    policy: Mapping[str, float], idm: Mapping[str, float], speed_gain: float = 0.0
+) -> dict[str, bool]:
     """Which criteria the policy's figures meet against the reference's (IDM's, or IDM +
     MOBIL's where the road needs lane changes) on the same seeds.
 
     Both are `agent_client.evaluation.metrics.aggregate` figures (or `summarise`'s, a superset).
+    No collision and no red light passed (protocol 1.8) are hard targets: a single one fails.
+    ``as_fast_as_idm`` asks the reference's speed times 1 + `speed_gain` (a learned driver
+    that must be better than its reference, not equal to it); ``shielded_rarely`` at most
+    `SAFETY_TARGET` of decisions overridden by the safety layer.
     ``near_ceiling`` asks `CEILING_TARGET` of the leader-at-entry ceiling, or as much as the
     reference reaches where that is less (on a road of several lanes the ceiling is no bound: a
     merging reference may trail the leader that entered ahead of it); a policy without a ceiling
@@ -46,15 +55,17 @@ def targets_met(policy: Mapping[str, float], idm: Mapping[str, float]) -> dict[s
     unbound = routed and ceiling_target(idm) < CEILING_TARGET
     return {
         "no_collisions": policy["collisions_per_episode"] == 0,
+        "no_red_lights": policy.get("red_lights_per_episode", 0.0) == 0,
         "comfortable": policy["jerk_share_above_limit"] <= JERK_TARGET,
         "safe_headway": policy["headway_share_below_1s"] <= HEADWAY_TARGET,
-        "as_fast_as_idm": policy["average_speed"] >= idm["average_speed"],
+        "as_fast_as_idm": policy["average_speed"] >= (1.0 + speed_gain) * idm["average_speed"],
         "near_ceiling": unknown or unbound or ratio >= ceiling_target(idm),
         "arrives": not routed or policy.get("arrival_share", 0.0) >= 1.0,
+        "shielded_rarely": policy.get("safety_share", 0.0) <= SAFETY_TARGET,
     }
 
 
-EVALUATION_TARGETS = ("comfortable", "safe_headway", "as_fast_as_idm")
+EVALUATION_TARGETS = ("comfortable", "safe_headway", "as_fast_as_idm", "shielded_rarely")
 """The targets an evaluation over several scenarios meets as a whole: shares of its time and its
 average speed, over all its episodes against the reference's on the same seeds. Per scenario,
 ten episodes make these figures noisier than the margin a good policy keeps: a policy faster
@@ -66,6 +77,7 @@ collision, an arrival) and each scenario's own ceiling stay per scenario."""
 def judge(
     scenarios: Mapping[str, tuple[Mapping[str, float], Mapping[str, float]]],
     whole: tuple[Mapping[str, float], Mapping[str, float]],
+    speed_gain: float = 0.0,
 ) -> tuple[dict[str, bool], str]:
     """Which targets an evaluation meets, and what missed which (``merge: arrives; all:
     as_fast_as_idm``): `scenarios` maps each scenario to its (policy, reference) figures,
@@ -83,9 +95,9 @@ def judge(
 
     pooled = EVALUATION_TARGETS if len(scenarios) > 1 else ()
     for name, (policy, reference) in scenarios.items():
-        verdict = targets_met(policy, reference)
+        verdict = targets_met(policy, reference, speed_gain)
         book(name, {t: ok for t, ok in verdict.items() if t not in pooled})
-    overall = targets_met(*whole)
+    overall = targets_met(*whole, speed_gain)
     if pooled:
         book("all", {t: ok for t, ok in overall.items() if t in pooled})
     return {t: met[t] for t in overall if t in met}, "; ".join(missed)
@@ -131,6 +143,8 @@ class FailureScreen:
         `remaining` give; None while every target can still be met."""
         if any(s.collisions for s in done):
             return "no_collisions"
+        if any(s.red_lights for s in done):
+            return "no_red_lights"
         if any(s.episode in self.routed and s.reason != EndReason.END_OF_ROAD for s in done):
             return "arrives"
         left = len(remaining)
@@ -143,6 +157,8 @@ class FailureScreen:
             below = sum(round(s.headway_share_below_1s * s.headway_samples) for s in done)
             if samples and below / samples > HEADWAY_TARGET:
                 return "safe_headway"
+            if steps and sum(s.safety_steps for s in done) / steps > SAFETY_TARGET:
+                return "shielded_rarely"
         if self.speed_bounds is not None and done:
             bound = (1 + BOUND_SLACK) * sum(self.speed_bounds[i] for i in remaining)
             if (sum(s.average_speed for s in done) + bound) / self.seeds < self.idm_speed:

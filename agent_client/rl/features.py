@@ -8,6 +8,10 @@ scaling inputs is a learning decision, so it lives here. Three sets:
   huge gap).
 * ``lc`` — ``cf`` plus the other five neighbours of Fig. 11 (presence, gap, relative speed) and
   whether there is a lane to the left and to the right.
+* ``drive`` — ``road`` plus what closes the way ahead (protocol 1.7-1.8): the stop line (its
+  distance, and the braking that stopping there takes at the ego's speed) and the next traffic
+  light (its distance, its state as red / yellow / green flags, the seconds until it changes):
+  the integrated driver's inputs on any road, the city's included.
 * ``road`` — ``lc`` plus the road ahead along the route (`protocol.messages.Road`, protocol 1.6):
   how far the ego's lane and the lanes beside it go on, the lanes it must cross (and to which side),
   the seconds left to the end of its lane at its speed, and how far the gap beside it on that side
@@ -30,13 +34,21 @@ import numpy as np
 from agent_client.constants import PAPER_SPEED_LIMIT
 from agent_client.errors import FeatureMismatch, UsageError
 from agent_client.rl.lanes import lane_phase, secure_gap
-from protocol.messages import ROAD_RANGE, Neighbour, Observation, road_ahead
+from protocol.messages import (
+    ROAD_RANGE,
+    SIGNAL_HORIZON,
+    Neighbour,
+    Observation,
+    SignalState,
+    road_ahead,
+)
 
 __all__ = [
     "FEATURE_SETS",
     "FeatureMap",
     "FeatureMismatch",
     "car_following",
+    "driving",
     "lane_changing",
     "road_reading",
 ]
@@ -122,10 +134,37 @@ def _gap_margins(obs: Observation, lanes_to_change: int) -> list[float]:
     return [min(max(m / GAP_SCALE, -1.0), 1.0) for m in (ahead, behind)]
 
 
+STOP_DECELERATION_SCALE = 6.0
+"""m/s²: the braking a stop needs is given as a share of this (the ego's hardest), capped at 1.5."""
+
+
+def driving(obs: Observation) -> list[float]:
+    """Road-reading features and what closes the way ahead: the stop line and the next light."""
+    features = road_reading(obs)
+    road = road_ahead(obs)
+    speed = max(obs.ego.speed, 0.0)
+    line = road.stop_line
+    if line < ROAD_RANGE:
+        needed = speed * speed / (2.0 * max(line, 0.5)) / STOP_DECELERATION_SCALE
+        stop = [1.0, line / ROAD_RANGE, min(needed, 1.5)]
+    else:
+        stop = [0.0, 1.0, 0.0]
+    state = road.signal_state
+    light = [
+        road.signal_distance / ROAD_RANGE,
+        float(state == SignalState.RED),
+        float(state == SignalState.YELLOW),
+        float(state == SignalState.GREEN),
+        road.signal_switch / SIGNAL_HORIZON,
+    ]
+    return features + stop + light
+
+
 FEATURE_SETS: dict[str, Callable[[Observation], list[float]]] = {
     "cf": car_following,
     "lc": lane_changing,
     "road": road_reading,
+    "drive": driving,
 }
 
 

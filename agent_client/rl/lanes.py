@@ -78,6 +78,11 @@ class LaneChoice:
     """A lane decision at every `every`-th decision (1: at each)."""
     gap_rule: bool = False
     """Mask changes into gaps shorter than the `secure_gap` (policies from before it: off)."""
+    route_masks: bool = True
+    """Near the end of a lane the route must leave, make the change towards the route the only
+    choice (`route_side`) and mask changes away from it (`leaves_route`). False: the policy
+    decides its mandatory changes too (a safety layer asks for the change only where the lane
+    end is about to be missed, and counts it: `agent_client.drivers.safety`)."""
     reference: Callable[[Observation, bool], int] | None = field(
         default=None, compare=False, repr=False
     )
@@ -110,11 +115,15 @@ class LaneChoice:
             if not 0 <= ego.lane + command < ego.lane_count:
                 command = 0
             return np.array([command == 0, command == 1, command == -1])
-        free, due, route = ego.changing_lane == 0, self.due(obs), route_side(obs)
+        free, due = ego.changing_lane == 0, self.due(obs)
+        route = route_side(obs) if self.route_masks else 0
         if free and route and 0 <= ego.lane + route < ego.lane_count:
             return np.array([False, route == 1, route == -1])  # the route's change, or nothing
-        left = free and due and ego.lane + 1 < ego.lane_count and not leaves_route(obs, 1)
-        right = free and due and ego.lane > 0 and not leaves_route(obs, -1)
+        keep_route = self.route_masks
+        left = free and due and ego.lane + 1 < ego.lane_count
+        right = free and due and ego.lane > 0
+        left = left and not (keep_route and leaves_route(obs, 1))
+        right = right and not (keep_route and leaves_route(obs, -1))
         if self.gap_rule:
             left = left and (route == 1 or gap_is_safe(obs, 1))
             right = right and (route == -1 or gap_is_safe(obs, -1))

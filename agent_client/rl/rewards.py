@@ -457,6 +457,10 @@ class SafeReward:
     (``lane_end``)."""
     route_weight: float = 2.0
     """w of the route's potential shaping, per lane to change (0: none)."""
+    red_light_penalty: float = 50.0
+    """Cost of the step in which the ego passed a red light (`Events.red_light`, protocol 1.8):
+    more than what driving on instead of waiting can earn within the discount horizon (at
+    gamma = 0.98, at most 1 / (1 - gamma) = 50), so that waiting for the green pays."""
     fallback_speed_limit: float = REFERENCE_SPEED
     """m/s: used if the observation carries no positive speed limit."""
 
@@ -474,7 +478,8 @@ class SafeReward:
         if not 0.0 <= self.jerk_weight <= 1.0:
             raise ValueError(f"jerk_weight must be within [0, 1], got {self.jerk_weight}")
         if min(self.refused_weight, self.lane_change_weight, self.collision_penalty,
-               self.stop_penalty, self.lane_end_penalty, self.route_weight) < 0.0:  # fmt: skip
+               self.stop_penalty, self.lane_end_penalty, self.route_weight,
+               self.red_light_penalty) < 0.0:  # fmt: skip
             raise ValueError("lane-change weights, penalties and route weight must be non-negative")
         if self.stop_penalty > self.collision_penalty:
             raise ValueError(
@@ -493,6 +498,8 @@ class SafeReward:
             return -self.collision_penalty
         if self.stop_penalty and obs.reason == "stopped":
             return -self.stop_penalty
+        if obs.events.red_light:
+            return -self.red_light_penalty
         route = self.route_weight * (route_potential(obs) - route_potential(prev)) if prev else 0.0
         if obs.reason == "lane_end":
             return route - self.lane_end_penalty

@@ -36,6 +36,7 @@ from agent_client.rl.lanes import choose_lanes
 from agent_client.rl.networks import (
     Params,
     actor_forward,
+    critics_forward,
     init_actor,
     init_critics,
     numpy_views,
@@ -44,7 +45,7 @@ from agent_client.rl.noise import NOISE_KINDS, ActionNoise, make_noise
 from agent_client.rl.optim import AdamState
 from agent_client.rl.policy import POLICY_FORMAT, POLICY_VERSION, Policy
 from agent_client.rl.replay import Batch, ReplayBuffer
-from agent_client.rl.update import METRICS, Hyper, LearnerState, Tensors, make_steps
+from agent_client.rl.update import INVALID, METRICS, Hyper, LearnerState, Tensors, make_steps
 
 NETWORKS = (
     "actor",
@@ -461,6 +462,56 @@ class Agent:
         with torch.no_grad():
             for position, fitted in enumerate(params):
                 for copy in (self.state.actor, self.state.actor_target, self.state.actor_average):
+                    copy[position].copy_(fitted)
+        self._refresh_acting()
+        return float(loss.detach())
+
+    def clone_lanes(
+        self,
+        obs: np.ndarray,
+        acceleration: np.ndarray,
+        lanes: np.ndarray,
+        masks: np.ndarray,
+        epochs: int,
+        margin: float = 0.5,
+        batch_size: int = 256,
+    ) -> float:
+        """Make the demonstrated lane choices the critics' best: a large-margin loss (DQfD,
+        Hester et al. 2018), max over the valid choices of Q + `margin` [choice differs] minus
+        Q of the demonstrated one, on the demonstrations' states and accelerations. Run after
+        the critics learned the demonstrations' values, so that the policy starts choosing the
+        demonstrator's lanes and TD learning moves it away only where another choice is worth
+        more. Returns the last loss (0: every demonstrated choice leads by the margin)."""
+        device = self.device
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=device)
+        acc_t = torch.as_tensor(
+            np.asarray(acceleration, dtype=np.float32).reshape(-1, 1), device=device
+        )
+        lane_t = torch.as_tensor(np.asarray(lanes, dtype=np.int64), device=device)
+        mask_t = torch.as_tensor(np.asarray(masks, dtype=bool), device=device)
+        params = [p.detach().clone().requires_grad_(True) for p in self.state.critics]
+        optimizer = torch.optim.Adam(params, lr=1e-3)
+        loss = torch.zeros(())
+        for _ in range(epochs):
+            order = torch.from_numpy(self.rng.permutation(len(obs_t))).to(device)
+            for start in range(0, len(order), batch_size):
+                index = order[start : start + batch_size]
+                q = critics_forward(params, obs_t[index], acc_t[index])  # (C, B, K)
+                taken = lane_t[index].view(1, -1, 1).expand(q.shape[0], -1, 1)
+                demo = q.gather(2, taken).squeeze(2)
+                bonus = torch.full_like(q, margin).scatter(2, taken, 0.0)
+                best = torch.where(mask_t[index], q + bonus, INVALID).max(2).values
+                loss = (best - demo).mean()
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+        with torch.no_grad():
+            for position, fitted in enumerate(params):
+                for copy in (
+                    self.state.critics,
+                    self.state.critic_targets,
+                    self.state.critics_average,
+                ):
                     copy[position].copy_(fitted)
         self._refresh_acting()
         return float(loss.detach())

@@ -107,6 +107,11 @@ class TrainConfig:
     between, the policy only chooses the acceleration. A lane change is a decision, not a
     request repeated every 0.1 s (docs/learner.md)."""
     lane_gap_rule: bool = True
+    lane_route_masks: bool = True
+    """Near the end of a lane the route must leave, the change towards the route is the only
+    lane choice, and changes away from it are masked (`agent_client.rl.lanes.LaneChoice`).
+    False: the policy decides its mandatory lane changes as well; the safety layer asks for the
+    change only where the lane end is about to be missed (counted)."""
     """Mask lane changes into gaps the observation shows shorter than a safe driver's secure
     gap (`agent_client.rl.lanes.secure_gap`): asked for only when they can happen."""
     scenario_options: dict[str, Any] = field(default_factory=dict)
@@ -161,6 +166,10 @@ class TrainConfig:
     every evaluation (docs/learner.md, "Evaluations during training")."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
+    speed_gain: float = 0.0
+    """How much faster than the reference a converged policy must drive, as a share of the
+    reference's speed on the same seeds (0: as fast; the integrated driver over the built-in
+    roads asks 0.01: better than the reference, not equal to it)."""
     stop_when_converged: bool = False
     """Stop after `converged_evals` consecutive evaluations meeting every target."""
     converged_evals: int = 3
@@ -276,6 +285,8 @@ class TrainConfig:
         parse_device(self.device)  # a typo now, not when the trainer starts
         if self.eval_budget is not None and not self.eval_budget > 0:
             raise UsageError(f"eval_budget must be > 0 (or None: no limit), got {self.eval_budget}")
+        if not 0.0 <= self.speed_gain < 1.0:
+            raise UsageError(f"speed_gain must be within [0, 1), got {self.speed_gain}")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise UsageError(f"max_minutes must be > 0, got {self.max_minutes}")
         if self.decision_interval <= 0:
@@ -366,6 +377,26 @@ steps only; on cflc, a steeper headway term below the knee (following under the 
 1 s costs twice as much). configs/cf.toml and configs/cflc.toml spell them out."""
 
 
+INTEGRATED: dict[str, Any] = {
+    "residual": "none",
+    "features": "drive",
+    "lane_route_masks": False,
+    "reference": "idm+mobil",
+    "pretrain_idm": True,
+    "pretrain_episodes": 10,
+    "warmup_policy": "idm+mobil",
+    "speed_gain": 0.01,
+    "reward_params": {"headway_sigma": 0.2},
+}
+"""The integrated driver over several scenarios (the built-in roads: `cflc`, `merge`, `exit`,
+`lanedrop`, `urban`): it decides its acceleration and every lane change itself (absolute
+actions, no lane masks of the route's; the safety layer overrides only where the drive is at
+stake, counted), reads the stop line and the next light (features ``drive``), starts from IDM +
+MOBIL's decisions (behaviour cloning of the actor, a margin on the critics' lane choices,
+IDM + MOBIL's warm-up), and converges only when 1 % faster than IDM + MOBIL on the same seeds
+(docs/learner.md, "The integrated driver")."""
+
+
 def recommended(scenario: str | list[str] = DEFAULT_SCENARIO, reward: str = "safe") -> TrainConfig:
     """The recommended configuration for `scenario` and `reward`: the defaults, and where a scenario
     has settings of its own (`RECOMMENDED`) those (its reward parameters only with the reward they
@@ -373,7 +404,7 @@ def recommended(scenario: str | list[str] = DEFAULT_SCENARIO, reward: str = "saf
     ``--config`` file, flags and ``--set`` override it."""
     config = TrainConfig(scenario=scenario, reward=reward)
     names = config.scenarios
-    own = dict(RECOMMENDED.get(names[0], {})) if len(names) == 1 else {}
+    own = dict(RECOMMENDED.get(names[0], {})) if len(names) == 1 else dict(INTEGRATED)
     if len(names) > 1:  # as many episodes of each scenario as one alone would get
         own["episodes"] = config.episodes * len(names)
     if reward != "safe":

@@ -167,7 +167,10 @@ class Trainer:
         self.features = FeatureMap(features, lane_phase_every=every)
         residual = config.residual if config.residual != "auto" else "idm+mobil" if routed else ""
         residual = residual.replace("none", "")
-        self.lanes = lane_choice(3 if lane_change else 1, every, config.lane_gap_rule, residual)
+        self.lanes = lane_choice(
+            3 if lane_change else 1, every, config.lane_gap_rule, residual,
+            config.lane_route_masks,
+        )  # fmt: skip
         self.scale = ActionScale.from_schema(
             self.env.welcome.action, residual, config.decision_interval
         )
@@ -192,7 +195,7 @@ class Trainer:
         eval_seeds = [
             config.eval_seed + i for i in range(config.eval_episodes * len(config.scenarios))
         ]
-        self.figures = Reference(eval_seeds, self.env.scenario_for)
+        self.figures = Reference(eval_seeds, self.env.scenario_for, config.speed_gain)
         """The reference's figures on the evaluation seeds (a seed picks its scenario)."""
         warmup = config.warmup_policy
         if warmup == "auto":
@@ -518,6 +521,8 @@ class Trainer:
         self.say(f"pre-training: {cfg.pretrain_episodes} {name} episodes through the bridge")
         states: list[np.ndarray] = []
         targets: list[float] = []
+        lanes: list[int] = []
+        masks: list[np.ndarray] = []
 
         def remember(before: Observation, action: Any, reward: float, after: Observation) -> None:
             x, u = self.features(before), self.scale.to_policy(action[0], before)
@@ -528,6 +533,8 @@ class Trainer:
                             after.terminated, mask, next_mask)  # fmt: skip
             states.append(x)
             targets.append(u)
+            lanes.append(lane)
+            masks.append(mask)
 
         for index in range(cfg.pretrain_episodes):
             seed = PRETRAIN_SEED + 1000 * cfg.seed + index
@@ -537,6 +544,14 @@ class Trainer:
         for _ in range(len(states)):
             self.agent.update(self.buffer.sample(cfg.learner.batch_size), actor=False)
         self.say(f"pre-training: actor fitted to {len(states)} {name} actions (MSE {loss:.4f})")
+        if self.lanes.n_choices > 1 and not self.lanes.reference:
+            stacked = np.stack(states)
+            margin = self.agent.clone_lanes(
+                stacked, np.array(targets), np.array(lanes), np.stack(masks), cfg.pretrain_epochs
+            )
+            self.say(
+                f"pre-training: critics lead with {name}'s lane choices (margin loss {margin:.4f})"
+            )
 
     # ----------------------------------------------------------------------- the policy
 

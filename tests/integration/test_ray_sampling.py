@@ -23,7 +23,7 @@ def spec(address: str) -> WorkerSpec:
     return WorkerSpec(
         address=address, scenario="cf", reward="safe",
         options={"decision_interval": 0.1, "max_episode_time": 2.0}, reset_options={},
-        features="cf", lane_phase_every=1, n_lanes=1, lane_every=1, lane_gap_rule=True, noise="ou",
+        features="cf", lane_phase_every=1, n_lanes=1, lane_every=1, lane_gap_rule=True, lane_route_masks=True, noise="ou",
         noise_sigma=0.1, noise_theta=0.15, noise_dt=0.01, warmup_policy="idm", seed=0,
         timeout_s=10.0,
     )  # fmt: skip

@@ -44,6 +44,9 @@ def refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
         ([*LOOPBACK, "--backend", "sumo-traci", "--traci-port", "0"], ["--traci-port 0"]),
         ([*LOOPBACK, "--sumocfg", "/no/such.sumocfg"], ["--sumocfg /no/such.sumocfg: no such"]),
         ([*LOOPBACK, "--ego-route", "r0"], ["--ego-route r0", "--sumocfg"]),
+        ([*LOOPBACK, "--osm", "/no/such.osm"], ["--osm /no/such.osm: no such file"]),
+        ([*LOOPBACK, "--net", "/no/such.net.xml"], ["--net /no/such.net.xml: no such file"]),
+        ([*LOOPBACK, "--scenario-name", "x"], ["--scenario-name x", "--net", "--osm"]),
         ([*LOOPBACK, "--backend", "replay"], ["--backend replay needs --recording DIR"]),
         ([*LOOPBACK, "--recording", "/no/such"], ["--recording needs --backend replay", "sumo"]),
         (
@@ -90,6 +93,24 @@ def test_a_sumocfg_needs_a_sumo_backend_and_an_ego_route(
     assert "--sumocfg needs a SUMO backend" in line and "fake" in line
     line = refused([*LOOPBACK, "--sumocfg", str(config)], capsys)
     assert "--ego-route" in line
+
+
+def test_a_map_is_one_per_server_on_sumo_and_a_broken_one_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    net, osm = tmp_path / "a.net.xml", tmp_path / "b.osm"
+    net.write_text("<net/>\n")
+    osm.write_text("this is no OpenStreetMap export\n")
+    line = refused([*LOOPBACK, "--net", str(net), "--osm", str(osm)], capsys)
+    assert "--net" in line and "--osm" in line and "one map per server" in line
+    line = refused([*LOOPBACK, "--backend", "highway", "--net", str(net)], capsys)
+    assert "--net needs a SUMO backend" in line
+    line = refused([*LOOPBACK, "--net", str(net), "--ego-route", "r"], capsys)
+    assert "--ego-route r: applies to --sumocfg only" in line and "ego_from" in line
+    line = refused([*LOOPBACK, "--net", str(net), "--cache-dir", str(tmp_path / "c")], capsys)
+    assert f"--net {net}" in line and "no road a passenger car may drive" in line
+    line = refused([*LOOPBACK, "--osm", str(osm), "--cache-dir", str(tmp_path / "c")], capsys)
+    assert f"--osm {osm}: netconvert could not import" in line
 
 
 def test_a_folder_without_a_recording_is_named(

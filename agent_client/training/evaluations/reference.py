@@ -22,10 +22,14 @@ from agent_client.evaluation.targets import FailureScreen, ceiling_target, judge
 class Reference:
     """The reference's figures on the evaluation seeds, and the verdicts of evaluations on them."""
 
-    def __init__(self, seeds: Sequence[int], scenario_for: Callable[[int], str]) -> None:
+    def __init__(
+        self, seeds: Sequence[int], scenario_for: Callable[[int], str], speed_gain: float = 0.0
+    ) -> None:
         """`seeds`: the evaluation seeds in order (an episode's index is its seed's);
-        `scenario_for`: the scenario a seed picks."""
+        `scenario_for`: the scenario a seed picks; `speed_gain`: how much faster than the
+        reference a policy must drive (`TrainConfig.speed_gain`)."""
         self.seeds = list(seeds)
+        self.speed_gain = speed_gain
         self.scenario_for = scenario_for
         self.overall: dict[str, float] | None = None
         """Over all its episodes (None until it has driven them)."""
@@ -70,7 +74,7 @@ class Reference:
             for name, group in self.group(summaries).items()
         }
         whole = {**self.overall, "average_speed": self.speed_on(summaries)}
-        return judge(scenarios, (aggregate(summaries), whole))
+        return judge(scenarios, (aggregate(summaries), whole), self.speed_gain)
 
     def speed_on(self, summaries: Sequence[EpisodeSummary]) -> float:
         """The reference's average speed on the seeds these episodes drove (all of them unless
@@ -95,7 +99,8 @@ class Reference:
         ceilings = self.ceilings
         bounds = ceilings if one_lane and ceilings and len(ceilings) == len(self.seeds) else None
         return FailureScreen(
-            len(self.seeds), self.overall["average_speed"], max_steps, bounds, routed,
+            len(self.seeds), (1.0 + self.speed_gain) * self.overall["average_speed"], max_steps,
+            bounds, routed,
             ceiling_target(self.overall),
         )  # fmt: skip
 

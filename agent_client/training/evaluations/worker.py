@@ -311,7 +311,12 @@ def driver_message(driver: Driver) -> dict[str, Any]:
         "n_lanes": policy.n_lane_actions,
         "features": driver.features.name,
         "lane_phase_every": driver.features.lane_phase_every,
-        "lanes": [driver.lanes.n_choices, driver.lanes.every, driver.lanes.gap_rule],
+        "lanes": [
+            driver.lanes.n_choices,
+            driver.lanes.every,
+            driver.lanes.gap_rule,
+            driver.lanes.route_masks,
+        ],
         "scale": [driver.scale.low, driver.scale.high],
         "residual": driver.scale.residual,
         "interval": driver.scale.interval,
@@ -332,10 +337,10 @@ def driver_from_message(message: dict[str, Any]) -> Driver:
         int(message["n_lanes"]),
     )
     features = FeatureMap(str(message["features"]), int(message["lane_phase_every"]))
-    n_choices, every, gap_rule = message["lanes"]
+    n_choices, every, gap_rule, route_masks = message["lanes"]
     low, high = message["scale"]
     residual, interval = str(message["residual"]), float(message["interval"])
-    lanes = lane_choice(int(n_choices), int(every), bool(gap_rule), residual)
+    lanes = lane_choice(int(n_choices), int(every), bool(gap_rule), residual, bool(route_masks))
     scale = ActionScale(float(low), float(high), residual, interval)
     return PolicyDriver(policy, features, scale, lanes)
 

@@ -248,6 +248,7 @@ def chunk_collector(
         n_lanes=lanes.n_choices,
         lane_every=lanes.every,
         lane_gap_rule=lanes.gap_rule,
+        lane_route_masks=lanes.route_masks,
         noise=learner.noise,
         noise_sigma=learner.noise_sigma,
         noise_theta=learner.noise_theta,

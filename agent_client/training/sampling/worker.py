@@ -55,6 +55,7 @@ class WorkerSpec:
     n_lanes: int
     lane_every: int
     lane_gap_rule: bool
+    lane_route_masks: bool
     noise: str
     noise_sigma: float
     noise_theta: float
@@ -152,7 +153,10 @@ class SamplingWorker:
         self.simulator = OwnSimulator(spec.simulator_args or "") if own else None
         self.env = self._connect()
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
-        lanes = lane_choice(spec.n_lanes, spec.lane_every, spec.lane_gap_rule, spec.residual)
+        lanes = lane_choice(
+            spec.n_lanes, spec.lane_every, spec.lane_gap_rule, spec.residual,
+            spec.lane_route_masks,
+        )  # fmt: skip
         interval = float(spec.options.get("decision_interval", DECISION_INTERVAL))
         scale = ActionScale.from_schema(self.env.welcome.action, spec.residual, interval)
         self.exploration = Exploration(spec, scale, spec.seed + 7919 * (index + 1))

@@ -43,6 +43,8 @@ def test_each_target_fails_alone() -> None:
         "safe_headway": {"headway_share_below_1s": HEADWAY_TARGET + 1e-6},
         "as_fast_as_idm": {"average_speed": 13.99},
         "near_ceiling": {"speed_ratio_to_ceiling": math.nan},  # no ceiling: not near it
+        "no_red_lights": {"red_lights_per_episode": 0.05},
+        "shielded_rarely": {"safety_share": 0.021},
     }
     for name, change in cases.items():
         met = targets_met(figures(**change), IDM)
@@ -196,3 +198,14 @@ def test_over_several_scenarios_shares_and_speed_are_judged_on_the_whole_evaluat
     assert [t for t, ok in met.items() if not ok] == ["arrives"] and missed == "merge: arrives"
     alone = judge({"merge": (slower, routed)}, (slower, routed))  # one scenario: as before
     assert alone == (targets_met(slower, routed), "merge: as_fast_as_idm")
+
+
+def test_a_driver_that_must_beat_its_reference_needs_the_gain_and_a_rare_shield() -> None:
+    reference = {"average_speed": 20.0}
+    equal = figures(average_speed=20.0, safety_share=0.0)
+    assert targets_met(equal, reference)["as_fast_as_idm"]
+    assert not targets_met(equal, reference, speed_gain=0.01)["as_fast_as_idm"]
+    assert targets_met({**equal, "average_speed": 20.21}, reference, 0.01)["as_fast_as_idm"]
+    shielded = {**equal, "safety_share": 0.03}
+    assert not targets_met(shielded, reference)["shielded_rarely"]
+    assert not targets_met({**equal, "red_lights_per_episode": 0.1}, reference)["no_red_lights"]

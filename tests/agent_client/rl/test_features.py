@@ -75,3 +75,17 @@ def test_the_gap_margins_say_how_far_the_gap_on_the_routes_side_is_from_a_safe_o
     near = Neighbours(close, absent, absent, absent, absent, absent)
     obs = make_observation(ego=Ego(20.0, 0.0, 0, 3, 100.0, 27.78), neighbours=near, road=merging)
     assert FeatureMap("road")(obs)[-2:] == pytest.approx([-0.125, 1.0])
+
+
+def test_the_driving_features_read_the_stop_line_and_the_next_light() -> None:
+    drive = FeatureMap("drive")
+    road = FeatureMap("road")
+    assert drive.dim == road.dim + 8
+    red = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=50.0, signal_distance=50.0, signal_state="red",
+               signal_switch=30.0)  # fmt: skip
+    obs = make_observation(ego=Ego(10.0, 0.0, 0, 1, 100.0, 13.9), road=red)
+    tail = drive(obs)[road.dim :].tolist()
+    assert tail[:3] == pytest.approx([1.0, 0.05, 100.0 / 100.0 / 6.0])  # v²/2d = 1 m/s²
+    assert tail[3:] == pytest.approx([0.05, 1.0, 0.0, 0.0, 0.25])
+    clear = drive(make_observation(ego=Ego(10.0, 0.0, 0, 1, 100.0, 13.9)))[road.dim :]
+    assert clear.tolist() == pytest.approx([0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])

@@ -140,3 +140,12 @@ def test_in_the_route_lane_a_change_into_a_lane_that_ends_is_masked() -> None:
     beside_a_ramp = Road(ROAD_RANGE, 0, ROAD_RANGE, 300.0)
     obs = make_observation(seq=0, ego=ego(1), neighbours=sides(), road=beside_a_ramp)
     assert LaneChoice(3, every=10).mask(obs).tolist() == [True, True, False]
+
+
+def test_without_the_routes_masks_the_policy_decides_its_mandatory_changes() -> None:
+    """Near the end of the lane it must leave, the integrated driver's choices stay its own
+    (the safety layer asks for the change only where the lane end is about to be missed)."""
+    road = Road(lane_end=60.0, lanes_to_change=1, left_lane_end=ROAD_RANGE, right_lane_end=0.0)
+    obs = make_observation(ego=ego(0), road=road)
+    assert LaneChoice(3).mask(obs).tolist() == [False, True, False]  # the route's, or nothing
+    assert LaneChoice(3, route_masks=False).mask(obs).tolist() == [True, True, False]

@@ -551,3 +551,11 @@ def test_on_an_open_road_the_route_terms_are_zero() -> None:
     assert safe(prev, obs, DT) == safe(
         replace(prev, road=OPEN_ROAD), replace(obs, road=OPEN_ROAD), DT
     )
+
+
+def test_the_safe_reward_makes_a_red_light_cost_more_than_driving_on_can_earn() -> None:
+    reward = make_reward("safe")
+    calm = make_obs(events=Events())
+    passed = make_obs(time=1.1, events=Events(red_light=True))
+    assert reward(calm, passed, 0.1) == -50.0
+    assert reward(calm, passed, 0.1) < -1.0 / (1.0 - 0.98)  # worse than 50 steps of full pay

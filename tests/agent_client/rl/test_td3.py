@@ -414,3 +414,16 @@ def test_config_validation() -> None:
         TD3Config(noise="pink")
     config = TD3Config.td3(hidden_sizes=(8, 8), critic_loss="huber")
     assert TD3Config.from_dict(_roundtrip(config.to_dict())) == config
+
+
+def test_cloning_lane_choices_makes_the_demonstrated_ones_the_greedy_ones() -> None:
+    rng = np.random.default_rng(0)
+    agent = Agent(4, 3, TD3Config(compile=False), seed=1)
+    obs = rng.normal(size=(300, 4)).astype(np.float32)
+    lanes = (obs[:, 0] > 0).astype(np.int64) + (obs[:, 1] > 1.0)  # a rule of the state
+    masks = np.ones((300, 3), dtype=bool)
+    loss = agent.clone_lanes(obs, np.zeros(300), lanes, masks, epochs=60)
+    chosen = np.array(
+        [agent.act(x, explore=False, mask=m)[1] for x, m in zip(obs, masks, strict=True)]
+    )
+    assert loss < 0.3 and np.mean(chosen == lanes) > 0.9

@@ -9,6 +9,7 @@ from agent_client.cli.main import build_parser
 from agent_client.cli.train import build_config
 from agent_client.errors import UsageError
 from agent_client.training.config import (
+    INTEGRATED,
     TrainConfig,
     apply_overrides,
     load_config_file,
@@ -156,10 +157,14 @@ def test_cflc_trains_with_a_steeper_headway_term_and_other_scenarios_with_the_de
     assert recommended("cflc") == steeper
     assert build_config(build_parser().parse_args(["train", "--scenario", "cflc"])) == steeper
     assert recommended("cflc", reward="ra3") == TrainConfig(scenario="cflc", reward="ra3")
-    several = TrainConfig(scenario=["merge", "cf"], episodes=2 * TrainConfig().episodes)
+    several = apply_overrides(
+        TrainConfig(scenario=["merge", "cf"], episodes=2 * TrainConfig().episodes), INTEGRATED
+    )
     assert recommended(["merge", "cf"]) == several  # as many episodes of each as one alone
-    several_lc = TrainConfig(scenario=["merge", "cflc"], episodes=2 * TrainConfig().episodes)
-    assert recommended(["merge", "cflc"]) == several_lc
+    assert several.residual == "none" and not several.lane_route_masks and several.speed_gain > 0
+    assert several.features == "drive" and several.pretrain_idm
+    assert recommended(["merge", "cflc"]).reward_params == {"headway_sigma": 0.2}
+    assert recommended(["merge", "cflc"], reward="ra3").reward_params == {}
     assert recommended("merge") == TrainConfig(scenario="merge")
 
 

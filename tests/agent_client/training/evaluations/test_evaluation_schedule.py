@@ -185,7 +185,7 @@ def test_a_residual_policys_passes_in_its_burn_in_do_not_count(
     nothing of what was learned, and does not count towards convergence (every target is met
     here, whatever the figures)."""
     met = {"no_collisions": True, "as_fast_as_idm": True}
-    monkeypatch.setattr(reference_module, "judge", lambda scenarios, whole: (dict(met), ""))
+    monkeypatch.setattr(reference_module, "judge", lambda scenarios, whole, gain: (dict(met), ""))
     waiting = train(fake_server.address, tmp_path / "burn", eval_budget=None,
                     residual="idm+mobil", residual_burn_in=10**6)  # fmt: skip
     rows = read_rows(tmp_path / "burn" / "evaluations.csv")

@@ -91,7 +91,9 @@ def test_the_reference_is_evaluated_first_and_its_figures_kept(
 def test_policy_evaluations_start_on_schedule_book_their_verdicts_and_converge(
     env: RemoteEnv, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(reference_module, "judge", lambda scenarios, whole: ({"all": True}, ""))
+    monkeypatch.setattr(
+        reference_module, "judge", lambda scenarios, whole, gain: ({"all": True}, "")
+    )
     recorder, progress = Recorder(), Progress()
     runs = evaluations(env, tmp_path, recorder)
     log = RunLog(tmp_path)

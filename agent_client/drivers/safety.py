@@ -1,0 +1,163 @@
+"""The safety layer of a learned driver: it overrides a decision only where a stated rule says
+the drive is at stake, and every override is counted.
+
+A shield (Alshiekh et al. 2018, "Safe reinforcement learning via shielding") that lets the
+policy decide everything else. The rules, each judged on the observation alone:
+
+* **a collision about to happen** — after the decision, the ego must still be able to stop
+  behind its leader should the leader brake as hard as it can: the gap left after one decision
+  at the proposed acceleration must exceed `MIN_GAP` plus the difference of the two braking
+  distances at `EMERGENCY_DECELERATION` (the responsibility-sensitive safe distance, Shalev-
+  Shwartz et al. 2017, with the reaction time of one decision). Else the acceleration is
+  lowered to the highest that keeps it (or the bound's braking, if none does).
+* **a red light about to be run** (and a way closed by the right of way, `Road.stop_line`) —
+  where the ego can still stop before the line braking no harder than `EMERGENCY_DECELERATION`,
+  but would no longer after one decision at the proposed acceleration, it brakes to stop there.
+* **a lane end about to be missed** — within `URGENT_TIME` (and at least `URGENT_DISTANCE`) per
+  lane to cross of the end of a lane the route must leave, the change towards the route is
+  asked for whatever the policy chose (the simulator still refuses an unsafe gap); and the end
+  of the lane is a stop line, as above.
+
+Where none applies, the policy's decision is applied as it is. `SafetyLayer.apply` returns the
+decision and what it overrode; the episode loop counts the steps and the lane changes the layer
+decided (`agent_client.evaluation.metrics.EpisodeSummary.safety_steps`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from protocol.messages import ROAD_RANGE, Observation, road_ahead
+
+EMERGENCY_DECELERATION = 6.0
+"""m/s²: the hardest braking assumed of the ego and of its leader (the ego type's decel)."""
+MIN_GAP = 1.0
+"""m left to the leader (or the stop line) after such braking."""
+URGENT_TIME = 4.0
+"""s at the ego's speed per lane to cross, before the end of a lane the route must leave,
+within which the layer asks for the change the route needs."""
+URGENT_DISTANCE = 40.0
+"""m: the same, at least."""
+TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True, slots=True)
+class Override:
+    """What the layer changed in one decision."""
+
+    acceleration: bool = False
+    lane_change: bool = False
+    rule: str = ""
+    """Which rule: "collision", "stop_line", "lane_end" ("" none)."""
+
+    @property
+    def any(self) -> bool:
+        return self.acceleration or self.lane_change
+
+
+NONE = Override()
+
+
+@dataclass(frozen=True)
+class SafetyLayer:
+    """The rules above, for decisions `interval` seconds apart and accelerations no lower than
+    `lowest` (the server's bound)."""
+
+    interval: float = 0.1
+    lowest: float = -EMERGENCY_DECELERATION
+
+    def apply(
+        self, obs: Observation, acceleration: float, lane_change: int
+    ) -> tuple[float, int, Override]:
+        """The decision to send, and what of the policy's the layer overrode."""
+        road = road_ahead(obs)
+        lane, lane_rule, rule = lane_change, "", ""
+        if not obs.ego.changing_lane:
+            must = _route_side(obs)
+            if must and lane_change != must and 0 <= obs.ego.lane + must < obs.ego.lane_count:
+                lane, lane_rule = must, "lane_end"
+        safe = self._collision_free(obs)
+        if acceleration > safe + TOLERANCE:
+            acceleration, rule = safe, "collision"
+        lane_end = road.lane_end if road.lanes_to_change else ROAD_RANGE
+        stop = self._stop_before(obs.ego.speed, min(road.stop_line, lane_end))
+        if acceleration > stop + TOLERANCE:
+            acceleration = stop
+            rule = rule or ("stop_line" if road.stop_line <= lane_end else "lane_end")
+        if not rule and not lane_rule:
+            return acceleration, lane, NONE
+        return acceleration, lane, Override(bool(rule), lane != lane_change, rule or lane_rule)
+
+    def _collision_free(self, obs: Observation) -> float:
+        """The highest acceleration after which the ego can still stop behind its leader were
+        the leader to brake as hard as it can; infinite without a leader."""
+        leader = obs.neighbours.leader
+        if not leader.present:
+            return math.inf
+        v, v_lead, dt, b = (
+            obs.ego.speed,
+            max(leader.speed, 0.0),
+            self.interval,
+            EMERGENCY_DECELERATION,
+        )
+
+        def margin(a: float) -> float:
+            v_next = max(v + a * dt, 0.0)
+            driven = 0.5 * (v + v_next) * dt
+            lead_next = max(v_lead - b * dt, 0.0)
+            lead_driven = 0.5 * (v_lead + lead_next) * dt
+            gap = leader.gap - driven + lead_driven
+            return gap - MIN_GAP - max(0.0, (v_next**2 - lead_next**2) / (2 * b))
+
+        return self._highest(margin)
+
+    def _stop_before(self, speed: float, line: float) -> float:
+        """The highest acceleration after which the ego can still stop `MIN_GAP` before a line
+        `line` m ahead braking at `EMERGENCY_DECELERATION`; infinite without a line, or where
+        it cannot stop there even now (then braking would not help: the line is passed)."""
+        if line >= ROAD_RANGE:
+            return math.inf
+        b, dt = EMERGENCY_DECELERATION, self.interval
+        if speed * speed > 2 * b * max(line - MIN_GAP, 0.0) + TOLERANCE:
+            return math.inf  # too late to stop: the layer does not pretend it can
+
+        def margin(a: float) -> float:
+            v_next = max(speed + a * dt, 0.0)
+            driven = 0.5 * (speed + v_next) * dt
+            return line - driven - MIN_GAP - v_next * v_next / (2 * b)
+
+        return self._highest(margin)
+
+    def _highest(self, margin: Callable[[float], float]) -> float:
+        """The highest acceleration (within [lowest, +inf)) whose `margin` is not negative:
+        infinite where any will do, `lowest` where none does; bisection on a margin that
+        falls with the acceleration."""
+        top = 10.0
+        if margin(top) >= 0.0:
+            return math.inf
+        low = self.lowest
+        if margin(low) < 0.0:
+            return low
+        high = top
+        for _ in range(40):
+            mid = 0.5 * (low + high)
+            if margin(mid) >= 0.0:
+                low = mid
+            else:
+                high = mid
+        return low
+
+
+def _route_side(obs: Observation) -> int:
+    """The side of the change the route needs now (within the urgent distance of the end of
+    the ego's lane), 0 when none."""
+    road = obs.road
+    if road is None or not road.lanes_to_change:
+        return 0
+    lanes = abs(road.lanes_to_change)
+    urgent = lanes * max(URGENT_DISTANCE, obs.ego.speed * URGENT_TIME)
+    if road.lane_end > urgent:
+        return 0
+    return 1 if road.lanes_to_change > 0 else -1

@@ -1,0 +1,448 @@
+"""The table nobody tuned to: drivers x maps x seeded trips, every figure with a 95 % interval.
+
+Trains nothing. Drives every driver (policy files, ``pretrained:NAME``, ``idm``, ``idm+mobil``,
+``sumo``) on every map over the same test seeds (benchmarks/test_seeds.json, fixed before any
+result on them), through real ``sim-server`` processes, and prints per map and driver:
+
+* arrivals (share of trips that reached the end of their route), collisions, red lights passed
+  (share of trips with one; Wilson intervals);
+* mean speed (m/s, over trips; a t-interval), and the paired difference to the faster of
+  IDM + MOBIL and SUMO's own driver on the same trips (a t-interval of the differences);
+* travel time of the trips that arrived (s);
+* shares of time headways under 1 s and of jerk samples above 5.6 m/s³, and the share of steps
+  the safety layer drove (pooled over the trips; bootstrap intervals over trips).
+
+Maps: the built-in scenarios (``cflc``, ``merge``, ``exit``, ``lanedrop``, ``urban``), networks
+SUMO ships with eclipse-sumo (``sumo:A10KW``, a motorway interchange from OpenStreetMap;
+``sumo:bs3d``, Braunschweig's inner city; ``sumo:ramp``; ``sumo:DRT``, a town from
+OpenStreetMap), and yours (``--net FILE``, ``--osm FILE``). Each map is served by a server of its
+own (``--workers 2``: the trips are spread over two simulators), started and stopped here.
+
+    python benchmarks/table.py --episodes 50                  # the default grid, baselines only
+    python benchmarks/table.py --policy pretrained:roads --episodes 50
+    python benchmarks/table.py --maps urban sumo:bs3d --osm town.osm --drivers idm+mobil sumo \
+        --episodes 100
+
+Writes benchmarks/results/table-DATE.json (``--out``) and a picture beside it. This is a
+measurement, not a test: an hour and more for the default grid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from agent_client.drivers.episode import run_episode
+from agent_client.drivers.spec import load_driver
+from agent_client.envs.remote_env import RemoteEnv
+from agent_client.errors import UsageError
+from agent_client.evaluation.metrics import EpisodeSummary, episode_summary
+from protocol.messages import EndReason
+from protocol.readiness import LISTENING, stop_process, wait_for_line
+
+BUILT_IN = ("cflc", "merge", "exit", "lanedrop", "urban")
+SHIPPED = {
+    "A10KW": "A10KW/osm.net.xml",
+    "bs3d": "bs3d/bs.net.xml",
+    "ramp": "ramp/ramp.net.xml",
+    "DRT": "DRT/osm.net.xml",
+}
+"""Networks eclipse-sumo ships in tools/game (``sumo:NAME``)."""
+BASELINES = ("idm", "idm+mobil", "sumo")
+STRONG = ("idm+mobil", "sumo")
+"""The baselines a policy's speed is compared with, the faster of them per map."""
+SEEDS_FILE = ROOT / "benchmarks" / "test_seeds.json"
+Z95 = 1.959963984540054
+BOOTSTRAP = 2000
+
+
+@dataclass(frozen=True)
+class Map:
+    """A row group of the table: the scenario clients reset, and the server that offers it."""
+
+    name: str
+    scenario: str
+    server_args: tuple[str, ...] = ()
+    options: tuple[tuple[str, Any], ...] = ()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--maps", nargs="*", default=[*BUILT_IN, *(f"sumo:{n}" for n in SHIPPED)])
+    parser.add_argument("--net", nargs="*", type=Path, default=[], help="your SUMO networks")
+    parser.add_argument("--osm", nargs="*", type=Path, default=[], help="your OSM exports")
+    parser.add_argument("--drivers", nargs="*", default=list(BASELINES))
+    parser.add_argument("--policy", nargs="*", default=[], help="policy files or pretrained:NAME")
+    parser.add_argument("--episodes", type=int, default=50, help="test seeds per map (<= 100)")
+    parser.add_argument("--option", nargs="*", default=[], help="KEY=VALUE for every reset")
+    parser.add_argument("--out", type=Path, help="JSON file (default benchmarks/results/...)")
+    args = parser.parse_args()
+    try:
+        maps = [*map(parse_map, args.maps), *(user_map(p, "--net") for p in args.net)]
+        maps += [user_map(p, "--osm") for p in args.osm]
+        specs = [*args.drivers, *args.policy]
+        for spec in specs:
+            load_driver(spec)  # a typo stops here, before any server starts
+        seeds = json.loads(SEEDS_FILE.read_text())["seeds"][: args.episodes]
+        if len(seeds) < args.episodes:
+            raise UsageError(f"--episodes {args.episodes}: the test seeds are {len(seeds)}")
+        extra = dict(parse_option(o) for o in args.option)
+    except UsageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = args.out or ROOT / "benchmarks" / "results" / f"table-{time.strftime('%Y-%m-%d')}.json"
+    results: dict[str, dict[str, Any]] = {}
+    started = time.monotonic()
+    for spot in maps:
+        print(f"== {spot.name}: {len(specs)} drivers x {len(seeds)} trips", flush=True)
+        episodes = drive_map(spot, specs, seeds, extra)
+        results[spot.name] = figures_of(episodes, specs)
+        print(table_of(spot.name, results[spot.name], specs), flush=True)
+        save(out, args, seeds, results, started)
+    whole = overall(results, specs)
+    print(overall_text(whole, specs))
+    save(out, args, seeds, results, started, whole)
+    picture(out.with_suffix(".png"), results, specs)
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+    return 0
+
+
+def parse_map(name: str) -> Map:
+    if name in BUILT_IN:
+        return Map(name, name)
+    if name.startswith("sumo:"):
+        import sumo
+
+        path = SHIPPED.get(name.removeprefix("sumo:"))
+        if path is None:
+            raise UsageError(f"map {name!r}: SUMO ships {', '.join('sumo:' + n for n in SHIPPED)}")
+        net = Path(sumo.SUMO_HOME) / "tools" / "game" / path
+        return Map(name, "map", ("--net", str(net), "--scenario-name", "map"))
+    raise UsageError(
+        f"map {name!r}: one of {', '.join(BUILT_IN)}, sumo:NAME, or --net FILE / --osm FILE"
+    )
+
+
+def user_map(path: Path, flag: str) -> Map:
+    if not path.is_file():
+        raise UsageError(f"{flag} {path}: no such file")
+    return Map(path.name, "map", (flag, str(path), "--scenario-name", "map"))
+
+
+def parse_option(text: str) -> tuple[str, Any]:
+    key, sep, value = text.partition("=")
+    if not sep:
+        raise UsageError(f"--option {text!r}: expected KEY=VALUE")
+    for kind in (int, float):
+        try:
+            return key, kind(value)
+        except ValueError:
+            pass
+    return key, {"true": True, "false": False}.get(value.lower(), value)
+
+
+def drive_map(
+    spot: Map, specs: Sequence[str], seeds: Sequence[int], extra: dict[str, Any]
+) -> dict[str, list[EpisodeSummary]]:
+    """Every driver over every seed of one map, the seeds spread over two simulators."""
+    command = [sys.executable, "-m", "sim_server.cli", "--bind", "tcp://127.0.0.1:0",
+               "--workers", "2", "--log-level", "WARNING", *spot.server_args]  # fmt: skip
+    server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    episodes: dict[str, list[EpisodeSummary]] = {spec: [] for spec in specs}
+    try:
+        addresses = [wait_for_line(server, LISTENING, 300.0) for _ in range(2)]
+        halves = [seeds[0::2], seeds[1::2]]
+        found: list[dict[str, list[EpisodeSummary]]] = [{}, {}]
+        errors: list[BaseException] = []
+
+        def work(k: int) -> None:
+            try:
+                found[k] = drive_seeds(addresses[k], spot, specs, halves[k], extra)
+            except BaseException as exc:  # reported below, with the map named
+                errors.append(exc)
+
+        threads = [threading.Thread(target=work, args=(k,)) for k in range(2)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        if errors:
+            raise RuntimeError(f"map {spot.name}: {errors[0]}") from errors[0]
+        for spec in specs:
+            merged = found[0][spec] + found[1][spec]
+            episodes[spec] = sorted(merged, key=lambda s: s.seed)
+    finally:
+        stop_process(server)
+    return episodes
+
+
+def drive_seeds(
+    address: str, spot: Map, specs: Sequence[str], seeds: Sequence[int], extra: dict[str, Any]
+) -> dict[str, list[EpisodeSummary]]:
+    env = RemoteEnv(
+        address, spot.scenario, reward="safe", reset_timeout_s=600.0, **dict(spot.options), **extra
+    )
+    found: dict[str, list[EpisodeSummary]] = {spec: [] for spec in specs}
+    try:
+        for seed in seeds:
+            for spec in specs:
+                episode = run_episode(env, load_driver(spec), seed)
+                found[spec].append(episode_summary(episode))
+    finally:
+        env.close()
+    return found
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def wilson(successes: int, total: int) -> list[float]:
+    """95 % Wilson score interval of a share."""
+    if total == 0:
+        return [math.nan, math.nan]
+    p = successes / total
+    centre = (p + Z95**2 / (2 * total)) / (1 + Z95**2 / total)
+    half = Z95 * math.sqrt(p * (1 - p) / total + Z95**2 / (4 * total**2)) / (1 + Z95**2 / total)
+    return [max(0.0, centre - half), min(1.0, centre + half)]
+
+
+def t_interval(values: Sequence[float]) -> list[float]:
+    """95 % interval of a mean (normal approximation with the sample's standard error)."""
+    data = np.asarray(values, dtype=float)
+    if len(data) < 2:
+        return [math.nan, math.nan]
+    half = Z95 * data.std(ddof=1) / math.sqrt(len(data))
+    return [float(data.mean() - half), float(data.mean() + half)]
+
+
+def pooled_share(counts: Sequence[float], totals: Sequence[float]) -> tuple[float, list[float]]:
+    """A share pooled over trips (sum of counts / sum of totals) and its bootstrap interval
+    over trips."""
+    c, t = np.asarray(counts, dtype=float), np.asarray(totals, dtype=float)
+    if t.sum() == 0:
+        return 0.0, [0.0, 0.0]
+    rng = np.random.default_rng(0)
+    picks = rng.integers(0, len(c), size=(BOOTSTRAP, len(c)))
+    sums = t[picks].sum(axis=1)
+    shares = np.where(sums > 0, c[picks].sum(axis=1) / np.maximum(sums, 1e-12), 0.0)
+    return float(c.sum() / t.sum()), [
+        float(np.quantile(shares, 0.025)),
+        float(np.quantile(shares, 0.975)),
+    ]
+
+
+def figures_of(episodes: dict[str, list[EpisodeSummary]], specs: Sequence[str]) -> dict[str, Any]:
+    """Each driver's figures on one map, and its paired speed difference to the strong
+    baselines driven here."""
+    table: dict[str, Any] = {}
+    for spec in specs:
+        runs = episodes[spec]
+        n = len(runs)
+        arrived = [r for r in runs if r.reason == EndReason.END_OF_ROAD]
+        speeds = [r.average_speed for r in runs]
+        headway, headway_ci = pooled_share(
+            [r.headway_share_below_1s * r.headway_samples for r in runs],
+            [r.headway_samples for r in runs],
+        )
+        jerk, jerk_ci = pooled_share(
+            [r.jerk_share_above_limit * r.steps for r in runs], [r.steps for r in runs]
+        )
+        layer, layer_ci = pooled_share([r.safety_steps for r in runs], [r.steps for r in runs])
+        table[spec] = {
+            "trips": n,
+            "arrivals": len(arrived) / n,
+            "arrivals_ci": wilson(len(arrived), n),
+            "collisions": sum(r.collisions > 0 for r in runs) / n,
+            "collisions_ci": wilson(sum(r.collisions > 0 for r in runs), n),
+            "red_lights": sum(r.red_lights > 0 for r in runs) / n,
+            "red_lights_ci": wilson(sum(r.red_lights > 0 for r in runs), n),
+            "red_lights_passed": sum(r.red_lights for r in runs),
+            "speed": float(np.mean(speeds)),
+            "speed_ci": t_interval(speeds),
+            "travel_time": float(np.mean([r.duration for r in arrived])) if arrived else math.nan,
+            "travel_time_ci": t_interval([r.duration for r in arrived]),
+            "headway_below_1s": headway,
+            "headway_below_1s_ci": headway_ci,
+            "jerk_above_limit": jerk,
+            "jerk_above_limit_ci": jerk_ci,
+            "safety_layer": layer,
+            "safety_layer_ci": layer_ci,
+            "ends": {
+                reason: sum(r.reason == reason for r in runs)
+                for reason in sorted({r.reason for r in runs})
+            },
+            "per_trip": [[r.seed, r.reason, r.average_speed, r.duration] for r in runs],
+        }
+    strong = [s for s in STRONG if s in episodes]
+    for spec in specs:
+        for base in strong:
+            if base == spec:
+                continue
+            diffs = [
+                a.average_speed - b.average_speed
+                for a, b in zip(episodes[spec], episodes[base], strict=True)
+            ]
+            table[spec][f"vs_{base}"] = {
+                "difference": float(np.mean(diffs)),
+                "ci": t_interval(diffs),
+            }
+    return table
+
+
+def overall(results: dict[str, dict[str, Any]], specs: Sequence[str]) -> dict[str, Any]:
+    """Over the whole table: each driver's mean speed over every trip, and the worst map."""
+    whole: dict[str, Any] = {}
+    for spec in specs:
+        trips = [t for m in results.values() for t in m[spec]["per_trip"]]
+        speeds = [t[2] for t in trips]
+        whole[spec] = {
+            "speed": float(np.mean(speeds)),
+            "speed_ci": t_interval(speeds),
+            "trips": len(trips),
+        }
+        for base in STRONG:
+            if base != spec and all(base in m for m in results.values()):
+                ratios = {name: m[spec]["speed"] / m[base]["speed"] for name, m in results.items()}
+                whole[spec][f"worst_map_vs_{base}"] = min(ratios.items(), key=lambda kv: kv[1])
+    return whole
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def _ci(values: Sequence[float], digits: int = 2, scale: float = 1.0) -> str:
+    low, high = values
+    if math.isnan(low):
+        return ""
+    return f" [{scale * low:.{digits}f}, {scale * high:.{digits}f}]"
+
+
+def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
+    lines = [
+        f"### {name}",
+        "",
+        "| driver | arrivals | collisions | red lights | speed, m/s | vs the faster baseline, m/s "
+        "| travel time, s | headway < 1 s | jerk > 5.6 | safety layer |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for spec in specs:
+        f = figures[spec]
+        versus = [f[k] for k in (f"vs_{b}" for b in STRONG) if k in f]
+        best = min(versus, key=lambda v: v["difference"]) if versus else None
+        vs = f"{best['difference']:+.2f}{_ci(best['ci'])}" if best else ""
+        lines.append(
+            f"| `{spec}` | {100 * f['arrivals']:.0f} %{_ci(f['arrivals_ci'], 0, 100)} "
+            f"| {100 * f['collisions']:.0f} %{_ci(f['collisions_ci'], 0, 100)} "
+            f"| {100 * f['red_lights']:.0f} %{_ci(f['red_lights_ci'], 0, 100)} "
+            f"| {f['speed']:.2f}{_ci(f['speed_ci'])} | {vs} "
+            f"| {f['travel_time']:.0f}{_ci(f['travel_time_ci'], 0)} "
+            f"| {100 * f['headway_below_1s']:.1f} %{_ci(f['headway_below_1s_ci'], 1, 100)} "
+            f"| {100 * f['jerk_above_limit']:.2f} %{_ci(f['jerk_above_limit_ci'], 2, 100)} "
+            f"| {100 * f['safety_layer']:.2f} %{_ci(f['safety_layer_ci'], 2, 100)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def overall_text(whole: dict[str, Any], specs: Sequence[str]) -> str:
+    lines = ["### the whole table", ""]
+    for spec in specs:
+        w = whole[spec]
+        worst = "; ".join(
+            f"worst map against {b}: {w[k][0]} {w[k][1]:.3f}x"
+            for b in STRONG
+            if (k := f"worst_map_vs_{b}") in w
+        )
+        lines.append(
+            f"* `{spec}`: {w['speed']:.2f} m/s{_ci(w['speed_ci'])} over {w['trips']} trips; {worst}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def save(
+    out: Path, args: argparse.Namespace, seeds: Sequence[int], results: dict[str, Any],
+    started: float, whole: dict[str, Any] | None = None,
+) -> None:  # fmt: skip
+    out.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "command": " ".join(sys.argv),
+        "machine": f"{platform.node()} {platform.machine()}, Python {platform.python_version()}",
+        "seeds": [seeds[0], seeds[-1]],
+        "minutes": (time.monotonic() - started) / 60,
+        "results": results,
+        "whole": whole,
+    }
+    out.write_text(json.dumps(payload, indent=1) + "\n")
+
+
+def picture(path: Path, results: dict[str, dict[str, Any]], specs: Sequence[str]) -> None:
+    """Speed and arrivals per map and driver, with their 95 % intervals; the red lights, the
+    collisions and the safety layer's share as numbers over the bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(results)
+    x = np.arange(len(names))
+    width = 0.8 / max(len(specs), 1)
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(8, 1.6 * len(names)), 8), sharex=True)
+    for k, spec in enumerate(specs):
+        at = x - 0.4 + width * (k + 0.5)
+        speed = [results[n][spec]["speed"] for n in names]
+        low = [results[n][spec]["speed_ci"][0] for n in names]
+        high = [results[n][spec]["speed_ci"][1] for n in names]
+        errors = np.nan_to_num([np.subtract(speed, low), np.subtract(high, speed)])
+        top.bar(at, speed, width, yerr=errors, capsize=2, label=spec)
+        arrive = [100 * results[n][spec]["arrivals"] for n in names]
+        a_low = [100 * results[n][spec]["arrivals_ci"][0] for n in names]
+        a_high = [100 * results[n][spec]["arrivals_ci"][1] for n in names]
+        bottom.bar(
+            at,
+            arrive,
+            width,
+            yerr=[np.subtract(arrive, a_low), np.subtract(a_high, arrive)],
+            capsize=2,
+        )
+        for i, n in enumerate(names):
+            f = results[n][spec]
+            marks = []
+            if f["collisions"]:
+                marks.append(f"C{100 * f['collisions']:.0f}%")
+            if f["red_lights"]:
+                marks.append(f"R{100 * f['red_lights']:.0f}%")
+            if f["safety_layer"]:
+                marks.append(f"S{100 * f['safety_layer']:.1f}%")
+            if marks:
+                bottom.text(
+                    at[i], 2, "\n".join(marks), ha="center", va="bottom", fontsize=7, rotation=90
+                )
+    top.set_ylabel("mean speed, m/s (95 % interval)")
+    top.legend(ncol=len(specs), fontsize=8)
+    bottom.set_ylabel("trips that arrived, % (95 % interval)")
+    bottom.set_ylim(0, 105)
+    bottom.set_xticks(x, names, rotation=20)
+    fig.suptitle(
+        "Drivers on every map, the same test trips (C: collisions, R: red lights, S: safety layer)"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

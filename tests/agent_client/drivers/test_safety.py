@@ -1,0 +1,92 @@
+"""The safety layer: it overrides a learned driver only where a stated rule says the drive is at
+stake (a collision, a red light, a lane end about to be missed), and the episode counts it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+
+from agent_client.drivers.episode import Episode
+from agent_client.drivers.safety import EMERGENCY_DECELERATION, NONE, Override, SafetyLayer
+from agent_client.evaluation.metrics import episode_summary
+from protocol.messages import ROAD_RANGE, Ego, Events, Neighbour, Neighbours, Road
+from tests.protocol.test_codec import make_observation
+
+ABSENT = Neighbour(False, 200.0, 0.0, 0.0)
+LAYER = SafetyLayer(interval=0.1, lowest=-6.0)
+
+
+def observation(
+    speed: float,
+    leader: Neighbour = ABSENT,
+    road: Road | None = None,
+    lane: int = 0,
+    lanes: int = 1,
+):  # type: ignore[no-untyped-def]
+    return make_observation(
+        seq=5,
+        ego=Ego(speed, 0.0, lane, lanes, 300.0, 22.22),
+        neighbours=Neighbours(ABSENT, ABSENT, leader, ABSENT, ABSENT, ABSENT),
+        road=road,
+        events=Events(),
+    )
+
+
+def test_following_at_a_safe_distance_is_left_to_the_policy() -> None:
+    calm = observation(20.0, Neighbour(True, 25.0, 0.0, 20.0, "car"))
+    assert LAYER.apply(calm, 1.0, 0) == (1.0, 0, NONE)
+    assert LAYER.apply(observation(20.0), 3.0, 0) == (3.0, 0, NONE)  # nobody ahead
+
+
+def test_closing_in_on_a_standing_vehicle_the_layer_brakes() -> None:
+    """25 m/s towards a car standing 54 m ahead: at the policy's +1 m/s² it could no longer stop
+    (52.5 m of braking at 6 m/s² after 2.5 m of the decision, 1 m to spare); the layer brakes
+    just enough."""
+    obs = observation(25.0, Neighbour(True, 54.0, 0.0, 0.0, "stopped"))
+    acceleration, lane, override = LAYER.apply(obs, 1.0, 0)
+    assert override == Override(acceleration=True, lane_change=False, rule="collision")
+    assert -EMERGENCY_DECELERATION <= acceleration < 1.0 and lane == 0
+    assert LAYER._collision_free(obs) == pytest.approx(acceleration)
+    softer = LAYER.apply(obs, acceleration - 0.5, 0)
+    assert softer[2] == NONE  # braking harder than needed is the policy's own choice
+
+
+def test_a_red_light_it_can_still_stop_for_is_not_run() -> None:
+    """20 m/s, a red light 35 m ahead: stopping takes 5.9 m/s² now, more than the ego has after
+    one more decision at +2 m/s²; the layer brakes (and no harder than the ego can)."""
+    red = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=35.0, signal_distance=35.0, signal_state="red")
+    acceleration, _, override = LAYER.apply(observation(20.0, road=red), 2.0, 0)
+    assert override.rule == "stop_line" and -EMERGENCY_DECELERATION <= acceleration < 0.0
+    assert LAYER.apply(observation(20.0, road=red), acceleration, 0)[2] == NONE
+    far = replace(red, stop_line=200.0, signal_distance=200.0)
+    assert LAYER.apply(observation(20.0, road=far), 2.0, 0)[2] == NONE  # not at stake yet
+    too_late = replace(red, stop_line=8.0, signal_distance=8.0)
+    assert LAYER.apply(observation(20.0, road=too_late), 2.0, 0)[2] == NONE  # braking cannot help
+
+
+def test_a_lane_end_about_to_be_missed_gets_the_change_the_route_needs() -> None:
+    merging = Road(30.0, 1, ROAD_RANGE, 0.0)
+    obs = observation(15.0, road=merging, lane=0, lanes=3)
+    _, lane, override = LAYER.apply(obs, 0.0, 0)
+    assert lane == 1 and override.lane_change and override.rule == "lane_end"
+    assert LAYER.apply(obs, 0.0, 1)[2] == replace(NONE)  # the policy asked: nothing to do
+    early = replace(merging, lane_end=300.0)
+    assert LAYER.apply(observation(15.0, road=early, lanes=3), 0.0, 0)[2] == NONE
+    changing = replace(obs, ego=replace(obs.ego, changing_lane=1))
+    assert not LAYER.apply(changing, 0.0, 0)[2].lane_change  # a change is under way
+
+
+def test_the_episode_counts_the_layers_decisions() -> None:
+    first = observation(10.0)
+    moved = replace(first, seq=6, time=first.time + 0.1)
+    started = replace(moved, seq=7, time=moved.time + 0.1, events=Events(lane_change_started=True))
+    episode = Episode(step_length=0.1)
+    for obs in (first, moved, started):
+        episode.add(obs)
+    episode.overrides = [Override(True, False, "collision"), Override(False, True, "lane_end")]
+    summary = episode_summary(episode)
+    assert summary.safety_steps == 2 and summary.safety_lane_changes == 1
+    assert episode_summary(replace(episode, overrides=[NONE, NONE])).safety_steps == 0
+    assert math.isclose(summary.steps, 2)
