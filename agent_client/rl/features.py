@@ -27,6 +27,7 @@ change by 2 (capped at ±1.5), the time to the lane end by 10 s (capped at 1), t
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -187,7 +188,28 @@ class FeatureMap:
         features = self._extract(obs)
         if self.lane_phase_every > 1:
             features.append(lane_phase(obs.seq, self.lane_phase_every))
-        return np.asarray(features, dtype=np.float32)
+        vector = np.asarray(features, dtype=np.float64)
+        if not np.all(np.abs(vector) <= FEATURE_CAP):  # NaN included: out of the designed range
+            _warn_once(obs, vector)
+            vector = np.clip(np.nan_to_num(vector, nan=0.0), -FEATURE_CAP, FEATURE_CAP)
+        return vector.astype(np.float32)
+
+
+FEATURE_CAP = 10.0
+"""Every feature is designed to lie within a few units; a value beyond this (an observation no
+driver should meet, valid as it is on the wire) is clipped, so that it cannot turn the
+networks' outputs into infinities, and reported once."""
+_warned: list[bool] = []
+
+
+def _warn_once(obs: Observation, vector: np.ndarray) -> None:
+    if not _warned:
+        _warned.append(True)
+        warnings.warn(
+            f"features beyond +-{FEATURE_CAP:g} (clipped): {vector.tolist()} from {obs}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def _example() -> Observation:

@@ -132,6 +132,10 @@ must come within any client's step deadline, whatever the network (a city of tho
 vehicles simulates far slower than real time would allow an hour of it)."""
 TURNED = frozenset("yYru")
 """Link states of a light that has turned against the vehicles still inside its junction."""
+UNMEASURED = 1e6
+"""m: a neighbour distance SUMO reports beyond this (its -DBL_MAX) was not measured."""
+VEHICLE_LENGTH = 5.0
+"""m: the ego's length where a gap is measured from positions (the built-in egos' length)."""
 SAME_LINE = 1.0
 """m: a traffic light this close to the end of the ego's lane is the one at its next junction."""
 INSERTION_WALL_S = 120.0
@@ -1433,6 +1437,8 @@ class SumoBackend(Backend):
         if not found:
             return self._absent
         other, distance = found[0] if len(found) == 1 else min(found, key=_second)
+        if not -UNMEASURED <= distance <= UNMEASURED:  # SUMO's -DBL_MAX: not measured
+            return self._measured(episode, other, ego_min_gap is not None, frame)
         if ego_min_gap is None:
             min_gap = episode.min_gaps.get(other)
             if min_gap is None:
@@ -1450,6 +1456,30 @@ class SumoBackend(Backend):
             other_x, other_y = api.vehicle.getPosition(other)
             lateral = (other_x - x) * normal_x + (other_y - y) * normal_y
         return Neighbour(True, gap, lateral, api.vehicle.getSpeed(other), other)
+
+    def _measured(
+        self,
+        episode: _Episode,
+        other: str,
+        ahead: bool,
+        frame: tuple[float, float, float, float] | None,
+    ) -> Neighbour:
+        """A neighbour SUMO found but could not measure the distance to (it reports
+        -DBL_MAX, e.g. for a vehicle beside the ego on a junction's lanes): its gap from the
+        two positions along the ego's heading (`frame`), absent if that puts it out of range
+        or on the other side, or where there is no frame (the ring)."""
+        if frame is None:
+            return self._absent
+        vehicle = self._api.vehicle
+        x, y, normal_x, normal_y = frame
+        other_x, other_y = vehicle.getPosition(other)
+        along = (other_x - x) * normal_y - (other_y - y) * normal_x  # heading = (n_y, -n_x)
+        lateral = (other_x - x) * normal_x + (other_y - y) * normal_y
+        ego_length = VEHICLE_LENGTH
+        gap = along - vehicle.getLength(other) if ahead else -along - ego_length
+        if not -2.0 * ego_length <= gap <= self.sensor_range:
+            return self._absent
+        return Neighbour(True, gap, lateral, vehicle.getSpeed(other), other)
 
     def _arrival_observation(
         self,

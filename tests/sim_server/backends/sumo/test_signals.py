@@ -206,3 +206,19 @@ def test_the_city_is_drawn_from_the_seed(backend: SumoBackend, tmp_path: Path) -
         api = backend._api
         grids.add((api.junction.getIDCount(), api.trafficlight.getIDCount(), api.lane.getIDCount()))
     assert len(grids) > 1
+
+
+def test_every_neighbour_gap_in_the_city_is_a_measured_one(backend: SumoBackend) -> None:
+    """SUMO reports -DBL_MAX for a side leader it cannot measure (here, on seed 26 of the
+    two-lane city, a vehicle turning beside the ego inside a junction); the observation measures
+    it from the positions instead (a learner fed -1.8e308 m turned its networks' outputs into
+    NaN)."""
+    gaps = []
+    drawn = {"columns": 0, "rows": 0, "block_length": 0.0, "street_speed": 0.0, "cycle_time": 0.0}
+    defaults = {"warmup": 60.0, "max_episode_time": 600.0, "ego_route_min": 500.0,
+                "ego_route_max": 1500.0}  # fmt: skip
+    for obs in drive(backend, IDMMobilDriver().act, 26, lanes=2, traffic=80.0, **drawn, **defaults):
+        gaps += [getattr(obs.neighbours, slot).gap for slot in (
+            "left_leader", "left_follower", "leader", "follower", "right_leader",
+            "right_follower")]  # fmt: skip
+    assert min(gaps) > -50.0 and max(gaps) <= 200.0
