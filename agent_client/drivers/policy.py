@@ -20,7 +20,7 @@ from agent_client.drivers.safety import NONE as NO_OVERRIDE
 from agent_client.drivers.safety import SafetyLayer
 from agent_client.rl.features import FeatureMap, FeatureMismatch
 from agent_client.rl.greedy import GreedyPolicy
-from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
+from agent_client.rl.lanes import LaneChoice
 from protocol.messages import ActionSchema, Observation
 
 RESIDUAL_RANGE = 2.0
@@ -57,11 +57,27 @@ REFERENCES: dict[str, Reference] = {
 """The drivers a policy can be trained on top of."""
 
 
+RESIDUAL_LANES = ("follow", "default", "own")
+"""How a residual policy's lane choice relates to its reference's: ``follow`` (the reference's
+change is the only choice), ``default`` (the reference's change is the first of four choices,
+keep / left / right the policy's own: it starts as the reference and leaves it where a choice
+of its own is worth more) or ``own`` (keep / left / right alone)."""
+
+
 def lane_choice(
-    n_choices: int, every: int, gap_rule: bool, residual: str = "", route_masks: bool = True
+    n_choices: int,
+    every: int,
+    gap_rule: bool,
+    residual: str = "",
+    route_masks: bool = True,
+    residual_lanes: str = "follow",
 ) -> LaneChoice:
-    """The lane choice of a policy; a residual one changes lanes as its reference does."""
-    reference = REFERENCES[residual].lane_change if residual and n_choices > 1 else None
+    """The lane choice of a policy; a residual one relates to its reference's as
+    `residual_lanes` says (`RESIDUAL_LANES`; `n_choices` 4 for ``default``)."""
+    if residual_lanes not in RESIDUAL_LANES:
+        raise ValueError(f"residual_lanes {residual_lanes!r} is not one of {RESIDUAL_LANES}")
+    uses = residual and n_choices > 1 and residual_lanes != "own"
+    reference = REFERENCES[residual].lane_change if uses else None
     return LaneChoice(n_choices, every, gap_rule, route_masks, reference)
 
 
@@ -84,6 +100,14 @@ class ActionScale:
     """"" (the acceleration itself), or a key of `REFERENCES`."""
     interval: float = DECISION_INTERVAL
     """Seconds per decision (with `residual`: the jerk limit's time step)."""
+    reach: float = RESIDUAL_RANGE
+    """m/s²: with `residual`, how far the actor's output reaches from what the reference wants
+    (at u = ±1). A reach as wide as the action's bounds lets the policy choose any acceleration,
+    the reference only where its output is 0: the integrated driver's parametrisation."""
+    shield: bool = True
+    """With `residual`, fade the reach out where the reference says the drive is at stake
+    (`Reference.at_stake`); False: the policy decides there too (a safety layer may override
+    it, counted: `agent_client.drivers.safety`)."""
 
     def __post_init__(self) -> None:
         if self.residual and self.residual not in REFERENCES:
@@ -91,9 +115,15 @@ class ActionScale:
 
     @classmethod
     def from_schema(
-        cls, schema: ActionSchema, residual: str = "", interval: float = DECISION_INTERVAL
+        cls,
+        schema: ActionSchema,
+        residual: str = "",
+        interval: float = DECISION_INTERVAL,
+        reach: float = RESIDUAL_RANGE,
+        shield: bool = True,
     ) -> ActionScale:
-        return cls(schema.acceleration_min, schema.acceleration_max, residual, interval)
+        low, high = schema.acceleration_min, schema.acceleration_max
+        return cls(low, high, residual, interval, reach, shield)
 
     def to_env(self, u: float, obs: Observation | None = None) -> float:
         """The acceleration for the actor's `u` in the state `obs` (needed with `residual`)."""
@@ -122,7 +152,9 @@ class ActionScale:
 
     def _reach(self, obs: Observation) -> float:
         """m/s²: how far a residual policy's correction reaches in `obs` (at u = ±1)."""
-        return RESIDUAL_RANGE * (1.0 - REFERENCES[self.residual].at_stake(obs))
+        if not self.shield:
+            return self.reach
+        return self.reach * (1.0 - REFERENCES[self.residual].at_stake(obs))
 
 
 class PolicyDriver:
@@ -157,7 +189,7 @@ class PolicyDriver:
         self._last_time = obs.time
         u, lane = self.policy.act(self.features(obs), self.lanes.mask(obs))
         acceleration, command, self.override = self.layer.apply(
-            obs, self.scale.to_env(u, obs), LANE_COMMANDS[lane]
+            obs, self.scale.to_env(u, obs), self.lanes.command(lane, obs)
         )
         return acceleration, command
 
@@ -181,6 +213,11 @@ def save_policy(
         "lane_route_masks": lanes.route_masks,
         "acceleration_bounds": [scale.low, scale.high],
         "residual": scale.residual,
+        "residual_reach": scale.reach,
+        "residual_shield": scale.shield,
+        "residual_lanes": (
+            "own" if lanes.reference is None else "default" if lanes.n_choices == 4 else "follow"
+        ),
         "decision_interval": scale.interval,
     }
     save_checkpoint(path, state)
@@ -205,7 +242,12 @@ def load_policy_driver(path: Path) -> PolicyDriver:
         )
     residual = str(state.get("residual", ""))  # "" in older files
     route_masks = bool(state.get("lane_route_masks", True))  # on in files from before it
-    lanes = lane_choice(policy.n_lane_actions, every, gap_rule, residual, route_masks)
+    residual_lanes = str(state.get("residual_lanes", "follow"))  # older files: the reference's
+    lanes = lane_choice(
+        policy.n_lane_actions, every, gap_rule, residual, route_masks, residual_lanes
+    )
     interval = float(state.get("decision_interval", DECISION_INTERVAL))
-    scale = ActionScale(low, high, residual, interval)
+    reach = float(state.get("residual_reach", RESIDUAL_RANGE))
+    shield = bool(state.get("residual_shield", True))
+    scale = ActionScale(low, high, residual, interval, reach, shield)
     return PolicyDriver(policy, features, scale, lanes)

@@ -115,13 +115,14 @@ class SafetyLayer:
 
     def _stop_before(self, speed: float, line: float) -> float:
         """The highest acceleration after which the ego can still stop `MIN_GAP` before a line
-        `line` m ahead braking at `EMERGENCY_DECELERATION`; infinite without a line, or where
-        it cannot stop there even now (then braking would not help: the line is passed)."""
+        `line` m ahead braking at `EMERGENCY_DECELERATION` (within that margin: full braking,
+        standing stays standing); infinite without a line, or where it cannot stop before the
+        line even now (then braking would not help: the line is passed)."""
         if line >= ROAD_RANGE:
             return math.inf
         b, dt = EMERGENCY_DECELERATION, self.interval
-        if speed * speed > 2 * b * max(line - MIN_GAP, 0.0) + TOLERANCE:
-            return math.inf  # too late to stop: the layer does not pretend it can
+        if speed * speed > 2 * b * max(line, 0.0) + TOLERANCE:
+            return math.inf  # too late to stop before it: the layer does not pretend it can
 
         def margin(a: float) -> float:
             v_next = max(speed + a * dt, 0.0)

@@ -14,6 +14,7 @@ figures of several episodes that training, ``agent-client drive`` and the evalua
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -154,6 +155,8 @@ class EpisodeSummary:
     change; `agent_client.drivers.safety`): 0 for a driver without one."""
     safety_lane_changes: int = 0
     """Lane changes the safety layer decided that started."""
+    safety_rules: str = ""
+    """The layer's decisions by rule, ``collision:N stop_line:N lane_end:N`` ("" none)."""
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -202,6 +205,10 @@ def episode_summary(episode: Episode) -> EpisodeSummary:
         safety_lane_changes=sum(
             o.lane_change and after.events.lane_change_started
             for o, after in zip(episode.overrides, observations[1:], strict=False)
+        ),
+        safety_rules=" ".join(
+            f"{rule}:{count}"
+            for rule, count in sorted(Counter(o.rule for o in episode.overrides if o.any).items())
         ),
         collision_type=next(
             (o.events.collision_type for o in observations if o.events.collision), ""

@@ -65,13 +65,20 @@ def targets_met(
     }
 
 
-EVALUATION_TARGETS = ("comfortable", "safe_headway", "as_fast_as_idm", "shielded_rarely")
+EVALUATION_TARGETS = (
+    "comfortable",
+    "safe_headway",
+    "as_fast_as_idm",
+    "near_ceiling",
+    "shielded_rarely",
+)
 """The targets an evaluation over several scenarios meets as a whole: shares of its time and its
 average speed, over all its episodes against the reference's on the same seeds. Per scenario,
 ten episodes make these figures noisier than the margin a good policy keeps: a policy faster
 than IDM + MOBIL on every scenario over 50 held-out seeds missed ``as_fast_as_idm`` on one
-scenario or another in 7 of 12 evaluations (docs/learner.md). What single episodes decide (a
-collision, an arrival) and each scenario's own ceiling stay per scenario."""
+scenario or another in 7 of 12 evaluations (docs/learner.md); the leader-at-entry ceiling,
+where only one or two of a scenario's ten episodes have one, likewise. What single episodes
+decide (a collision, a red light, an arrival) stays per scenario."""
 
 
 def judge(

@@ -91,8 +91,10 @@ class LaneChoice:
     changes lanes as its reference does (`agent_client.drivers.policy.ActionScale`)."""
 
     def __post_init__(self) -> None:
-        if self.n_choices not in (1, 3):
-            raise ValueError(f"n_choices must be 1 or 3, got {self.n_choices}")
+        if self.n_choices not in (1, 3, 4):
+            raise ValueError(f"n_choices must be 1, 3 or 4, got {self.n_choices}")
+        if self.n_choices == 4 and self.reference is None:
+            raise ValueError("4 lane choices need a reference: the first is its choice")
         if self.every < 1:
             raise ValueError(f"every must be >= 1, got {self.every}")
 
@@ -104,17 +106,45 @@ class LaneChoice:
         """Where `obs` lies between two lane decisions, in [0, 1)."""
         return lane_phase(obs.seq, self.every)
 
+    def command(self, index: int, obs: Observation) -> int:
+        """The lane-change command (-1, 0, +1) of choice `index` in `obs`."""
+        if self.n_choices == 4:
+            return self._reference_command(obs) if index == 0 else LANE_COMMANDS[index - 1]
+        return LANE_COMMANDS[index]
+
+    def index_of(self, command: int, obs: Observation) -> int:
+        """The choice that gives `command` in `obs` (with 4 choices: the reference's, where
+        the command is the one it makes)."""
+        if self.n_choices == 4:
+            return (
+                0 if command == self._reference_command(obs) else 1 + LANE_COMMANDS.index(command)
+            )
+        return LANE_COMMANDS.index(command)
+
+    def _reference_command(self, obs: Observation) -> int:
+        """The reference's lane change in `obs` (0 while a change is under way or where its
+        side has no lane)."""
+        assert self.reference is not None
+        ego = obs.ego
+        command = self.reference(obs, self.due(obs)) if ego.changing_lane == 0 else 0
+        return command if 0 <= ego.lane + command < ego.lane_count else 0
+
     def mask(self, obs: Observation) -> np.ndarray:
         """(n_choices,) bool: the choices that can happen now; at least one (keep, except
-        where the route's change, or a `reference`'s, is the only choice)."""
+        where the route's change, or a `reference`'s, is the only choice). With 4 choices the
+        reference's is always possible, before keep / left / right as the policy's own."""
         if self.n_choices == 1:
             return KEEP_ONLY
-        ego = obs.ego
+        if self.n_choices == 4:
+            return np.concatenate([[True], self._own_mask(obs)])
         if self.reference is not None:
-            command = self.reference(obs, self.due(obs)) if ego.changing_lane == 0 else 0
-            if not 0 <= ego.lane + command < ego.lane_count:
-                command = 0
+            command = self._reference_command(obs)
             return np.array([command == 0, command == 1, command == -1])
+        return self._own_mask(obs)
+
+    def _own_mask(self, obs: Observation) -> np.ndarray:
+        """Keep / left / right as the policy's own choices."""
+        ego = obs.ego
         free, due = ego.changing_lane == 0, self.due(obs)
         route = route_side(obs) if self.route_masks else 0
         if free and route and 0 <= ego.lane + route < ego.lane_count:

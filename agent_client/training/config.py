@@ -83,6 +83,20 @@ class TrainConfig:
     correction of up to ±2 m/s² of IDM + MOBIL's acceleration, residual policy learning: the
     policy starts as good as the reference and learns to do better); auto: idm+mobil where some
     scenario's route makes the ego change lanes (a lane end or an exit), else none."""
+    residual_reach: float = 2.0
+    """m/s²: how far a residual actor's output reaches from the acceleration its reference
+    wants (at ±1). 9 covers the whole action range from any reference acceleration: the policy
+    chooses any acceleration, the reference's where its output is 0."""
+    residual_shield: bool = True
+    """Fade a residual policy's reach out where its reference says the drive is at stake (a
+    lane end close, a standstill): there the reference drives. False: the policy decides there
+    too; the safety layer overrides it only where a stated rule says the drive is at stake,
+    counted."""
+    residual_lanes: str = "follow"
+    """How a residual policy's lane choice relates to its reference's: follow (the reference's
+    change is the only choice), default (the reference's change is the first of four choices,
+    keep / left / right the policy's own: it starts as the reference and leaves it where a
+    choice of its own is worth more) or own (keep / left / right alone)."""
     residual_burn_in: int = 20_000
     """Critic updates before a residual policy's actor learns (the burn-in of Silver et al.
     2018: the critic first learns the values of the reference's driving, so that the actor's
@@ -166,6 +180,15 @@ class TrainConfig:
     every evaluation (docs/learner.md, "Evaluations during training")."""
     eval_seed: int = TRAINING_EVALUATION_SEED
     """Seed of the first evaluation episode (disjoint from training seeds)."""
+    safety_layer_training: bool = False
+    """Train through the safety layer (`agent_client.drivers.safety`), as the policy drives
+    when evaluated and deployed: exploration never runs a red light or into a vehicle it could
+    still avoid; the executed decision is the one learned from, and `override_penalty` is
+    taken off the reward of an overridden one, so that the policy learns not to need the
+    layer. (Episodes of many egos, ``egos`` > 1, are not shielded.)"""
+    override_penalty: float = 1.0
+    """Reward taken off a decision the safety layer overrode in training (the most one step of
+    the `safe` reward's driving pays)."""
     speed_gain: float = 0.0
     """How much faster than the reference a converged policy must drive, as a share of the
     reference's speed on the same seeds (0: as fast; the integrated driver over the built-in
@@ -250,6 +273,7 @@ class TrainConfig:
             "lane_change": ("auto", "yes", "no"),
             "warmup_policy": ("auto", "idm", "idm+mobil", "random"),
             "residual": ("auto", "none", "idm+mobil"),
+            "residual_lanes": ("follow", "default", "own"),
             "sampling": SAMPLING_KINDS,
         }
         for name, valid in choices.items():
@@ -378,22 +402,28 @@ steps only; on cflc, a steeper headway term below the knee (following under the 
 
 
 INTEGRATED: dict[str, Any] = {
-    "residual": "none",
+    "residual": "idm+mobil",
+    "residual_reach": 9.0,
+    "residual_shield": False,
+    "residual_lanes": "default",
     "features": "drive",
     "lane_route_masks": False,
     "reference": "idm+mobil",
     "pretrain_idm": True,
     "pretrain_episodes": 10,
-    "warmup_policy": "idm+mobil",
     "speed_gain": 0.01,
+    "safety_layer_training": True,
     "reward_params": {"headway_sigma": 0.2},
 }
 """The integrated driver over several scenarios (the built-in roads: `cflc`, `merge`, `exit`,
-`lanedrop`, `urban`): it decides its acceleration and every lane change itself (absolute
-actions, no lane masks of the route's; the safety layer overrides only where the drive is at
-stake, counted), reads the stop line and the next light (features ``drive``), starts from IDM +
-MOBIL's decisions (behaviour cloning of the actor, a margin on the critics' lane choices,
-IDM + MOBIL's warm-up), and converges only when 1 % faster than IDM + MOBIL on the same seeds
+`lanedrop`, `urban`): it decides its acceleration and every lane change itself, the route's
+mandatory ones included: its actor's output reaches the whole action range from the
+acceleration IDM + MOBIL wants (that acceleration where the output is 0: it starts from the
+reference and the action cost pulls it back there where nothing is to be gained), no fade-out
+where the drive is at stake, its own lane choices (learned Q-heads that start from IDM + MOBIL's
+choices by a margin, no lane masks of the route's); the safety layer overrides it only where
+the drive is at stake, in training too, counted and charged. It reads the stop line and the next
+light (features ``drive``), and converges only 1 % faster than IDM + MOBIL on the same seeds
 (docs/learner.md, "The integrated driver")."""
 
 

@@ -39,6 +39,7 @@ from agent_client.drivers.episode import run_episode
 from agent_client.drivers.idm import IDMDriver
 from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.drivers.policy import ActionScale, PolicyDriver, lane_choice, save_policy
+from agent_client.drivers.safety import SafetyLayer
 from agent_client.drivers.spec import load_driver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.vector_env import RemoteVectorEnv
@@ -50,7 +51,6 @@ from agent_client.errors import (
 )
 from agent_client.rl.checkpoint import load_checkpoint, save_checkpoint
 from agent_client.rl.features import FeatureMap
-from agent_client.rl.lanes import LANE_COMMANDS
 from agent_client.rl.policy import Policy
 from agent_client.rl.replay import ReplayBuffer
 from agent_client.rl.rewards import TRAFFIC_REWARDS, q_upper_bound
@@ -167,13 +167,17 @@ class Trainer:
         self.features = FeatureMap(features, lane_phase_every=every)
         residual = config.residual if config.residual != "auto" else "idm+mobil" if routed else ""
         residual = residual.replace("none", "")
+        choices = (
+            1 if not lane_change else 4 if residual and config.residual_lanes == "default" else 3
+        )
         self.lanes = lane_choice(
-            3 if lane_change else 1, every, config.lane_gap_rule, residual,
-            config.lane_route_masks,
+            choices, every, config.lane_gap_rule, residual, config.lane_route_masks,
+            config.residual_lanes,
         )  # fmt: skip
         self.scale = ActionScale.from_schema(
-            self.env.welcome.action, residual, config.decision_interval
-        )
+            self.env.welcome.action, residual, config.decision_interval, config.residual_reach,
+            config.residual_shield,
+        )  # fmt: skip
         self.sampling = config.sampling_on(n_envs, len(self.eval_servers))
         """Where training episodes run: local, processes or ray (auto resolved)."""
         n_envs *= config.egos  # one exploration noise process per ego slot
@@ -256,9 +260,15 @@ class Trainer:
                 lane_epsilon=lambda: self.agent.lane_epsilon, next_seed=self._next_seed,
                 retry_for_s=self.retry_for_s, eval_servers=len(self.eval_servers),
             )  # fmt: skip
+        safety = (
+            SafetyLayer(config.decision_interval, self.scale.low)
+            if config.safety_layer_training
+            else None
+        )
         return LocalCollector(
             self.vec.envs, self.features, self.lanes, self.scale, self._choose,
-            self._next_seed, self.agent.reset_noise, reset_options,
+            self._next_seed, self.agent.reset_noise, reset_options, safety,
+            config.override_penalty,
         )  # fmt: skip
 
     def _lanes_and_routes(self) -> tuple[bool, bool]:
@@ -527,7 +537,7 @@ class Trainer:
         def remember(before: Observation, action: Any, reward: float, after: Observation) -> None:
             x, u = self.features(before), self.scale.to_policy(action[0], before)
             mask, next_mask = self.lanes.mask(before), self.lanes.mask(after)
-            lane = LANE_COMMANDS.index(action[1]) if self.lanes.n_choices > 1 else 0
+            lane = self.lanes.index_of(action[1], before) if self.lanes.n_choices > 1 else 0
             lane = lane if mask[lane] else int(np.flatnonzero(mask)[0])  # the buffer: valid ones
             self.buffer.add(x, u, lane, reward, self.features(after),
                             after.terminated, mask, next_mask)  # fmt: skip
@@ -544,7 +554,7 @@ class Trainer:
         for _ in range(len(states)):
             self.agent.update(self.buffer.sample(cfg.learner.batch_size), actor=False)
         self.say(f"pre-training: actor fitted to {len(states)} {name} actions (MSE {loss:.4f})")
-        if self.lanes.n_choices > 1 and not self.lanes.reference:
+        if self.lanes.n_choices > 1 and (not self.lanes.reference or self.lanes.n_choices == 4):
             stacked = np.stack(states)
             margin = self.agent.clone_lanes(
                 stacked, np.array(targets), np.array(lanes), np.stack(masks), cfg.pretrain_epochs

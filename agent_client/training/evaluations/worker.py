@@ -316,8 +316,13 @@ def driver_message(driver: Driver) -> dict[str, Any]:
             driver.lanes.every,
             driver.lanes.gap_rule,
             driver.lanes.route_masks,
+            "own"
+            if driver.lanes.reference is None
+            else "default"
+            if driver.lanes.n_choices == 4
+            else "follow",
         ],
-        "scale": [driver.scale.low, driver.scale.high],
+        "scale": [driver.scale.low, driver.scale.high, driver.scale.reach, driver.scale.shield],
         "residual": driver.scale.residual,
         "interval": driver.scale.interval,
     }
@@ -337,11 +342,14 @@ def driver_from_message(message: dict[str, Any]) -> Driver:
         int(message["n_lanes"]),
     )
     features = FeatureMap(str(message["features"]), int(message["lane_phase_every"]))
-    n_choices, every, gap_rule, route_masks = message["lanes"]
-    low, high = message["scale"]
+    n_choices, every, gap_rule, route_masks, reference_lanes = message["lanes"]
+    low, high, reach, shield = message["scale"]
     residual, interval = str(message["residual"]), float(message["interval"])
-    lanes = lane_choice(int(n_choices), int(every), bool(gap_rule), residual, bool(route_masks))
-    scale = ActionScale(float(low), float(high), residual, interval)
+    lanes = lane_choice(
+        int(n_choices), int(every), bool(gap_rule), residual, bool(route_masks),
+        str(reference_lanes),
+    )  # fmt: skip
+    scale = ActionScale(float(low), float(high), residual, interval, float(reach), bool(shield))
     return PolicyDriver(policy, features, scale, lanes)
 
 

@@ -260,6 +260,11 @@ def chunk_collector(
         residual=residual,
         reset_timeout_s=env.reset_timeout_s,
         simulator_args=config.simulator_args if config.simulators else None,
+        residual_reach=config.residual_reach,
+        residual_shield=config.residual_shield,
+        residual_lanes=config.residual_lanes,
+        safety_layer=config.safety_layer_training,
+        override_penalty=config.override_penalty,
     )
     if config.simulators:
         specs = [spec] * config.simulators

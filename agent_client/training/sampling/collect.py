@@ -17,10 +17,12 @@ import numpy as np
 
 from agent_client.drivers.episode import Episode
 from agent_client.drivers.policy import ActionScale
+from agent_client.drivers.safety import NONE as NO_OVERRIDE
+from agent_client.drivers.safety import Override, SafetyLayer
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.evaluation.metrics import EpisodeSummary, episode_summary
 from agent_client.rl.features import FeatureMap
-from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
+from agent_client.rl.lanes import LaneChoice
 from protocol.errors import ErrorCode
 from protocol.messages import Observation, OptionValue
 
@@ -132,8 +134,14 @@ class LocalCollector:
         next_seed: Callable[[], int],
         on_start: Callable[[int], None] | None = None,
         reset_options: Mapping[str, OptionValue] | None = None,
+        safety: SafetyLayer | None = None,
+        override_penalty: float = 0.0,
     ) -> None:
         self.envs = list(envs)
+        self.safety = safety
+        """Applied to every decision, as when the policy drives (None: none in training)."""
+        self.override_penalty = override_penalty
+        """Taken off the reward of a decision the safety layer overrode."""
         self.features = features
         self.lanes = lanes
         self.scale = scale
@@ -142,8 +150,9 @@ class LocalCollector:
         self.on_start = on_start
         self.reset_options = dict(reset_options or {})
         self.slots: list[Slot | None] = [None] * len(self.envs)
-        self._sent: list[tuple[float, int] | int | None] = [None] * len(self.envs)
-        """Per server: (u, lane) of a step in flight, the seed of a reset in flight, or None."""
+        self._sent: list[tuple[float, int, Override] | int | None] = [None] * len(self.envs)
+        """Per server: (u, lane, what the safety layer overrode) of a step in flight, the seed
+        of a reset in flight, or None."""
 
     def send(self) -> None:
         running = [slot for slot in self.slots if slot is not None]
@@ -156,10 +165,17 @@ class LocalCollector:
             return
         us, lane_choices = self.choose(running)
         for slot, u, lane in zip(running, us, lane_choices, strict=True):
-            command = LANE_COMMANDS[int(lane)]
+            command = self.lanes.command(int(lane), slot.obs)
             acceleration = self.scale.to_env(float(u), slot.obs)
+            override = NO_OVERRIDE
+            if self.safety is not None:  # the executed action is the one learned from
+                acceleration, command, override = self.safety.apply(slot.obs, acceleration, command)
+                if override.acceleration:
+                    u = self.scale.to_policy(acceleration, slot.obs)
+                if override.lane_change:
+                    lane = self.lanes.index_of(command, slot.obs)
             self.envs[slot.env_index].send_command(acceleration, command)
-            self._sent[slot.env_index] = (float(u), int(lane))
+            self._sent[slot.env_index] = (float(u), int(lane), override)
 
     def receive(self) -> Collected:
         collected = Collected()
@@ -180,12 +196,20 @@ class LocalCollector:
             self.on_start(index)
 
     def _step(
-        self, index: int, env: RemoteEnv, sent: tuple[float, int], collected: Collected
+        self,
+        index: int,
+        env: RemoteEnv,
+        sent: tuple[float, int, Override],
+        collected: Collected,
     ) -> None:
         slot = self.slots[index]
         assert slot is not None
-        u, lane = sent
+        u, lane, override = sent
         next_obs, reward = env.receive_observation()
+        if self.safety is not None:
+            slot.episode.overrides.append(override)
+            if override.any:
+                reward -= self.override_penalty
         terminated, truncated = next_obs.terminated, next_obs.truncated
         next_x, next_mask = self.features(next_obs), self.lanes.mask(next_obs)
         collected.transitions.append(

@@ -60,7 +60,7 @@ class WarmupDriver:
             acceleration, change = driver.act(slot.obs)
             u = self.scale.to_policy(acceleration, slot.obs)
             u += self.rng.normal(0.0, self.noise_sigma)
-            lane = LANE_COMMANDS.index(change)
+            lane = 0 if len(slot.mask) == 4 else LANE_COMMANDS.index(change)  # 4: its own choice
             if not slot.mask[lane] or self.rng.random() < WARMUP_LANE_PROBABILITY:
                 lane = int(self.rng.choice(possible))
             return float(np.clip(u, -1.0, 1.0)), lane

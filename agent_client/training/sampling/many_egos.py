@@ -37,7 +37,7 @@ from agent_client.envs.remote_env import RemoteEnv
 from agent_client.envs.scenario import first_reply
 from agent_client.errors import MalformedReply, ServerError, UsageError
 from agent_client.rl.features import FeatureMap
-from agent_client.rl.lanes import LANE_COMMANDS, LaneChoice
+from agent_client.rl.lanes import LaneChoice
 from agent_client.training.sampling.collect import Chooser, Collected, Slot, Transition
 from agent_client.transport.channel import Channel
 from agent_client.transport.replies import ReplyChecker, ego_observation
@@ -276,7 +276,8 @@ class MultiEgoCollector:
                 running.values(), us[first:last], lane_choices[first:last], strict=True
             ):
                 acceleration = self.scale.to_env(float(u), slot.obs)
-                commands.append(Command(slot.ego_id, acceleration, LANE_COMMANDS[int(lane)]))
+                command = self.lanes.command(int(lane), slot.obs)
+                commands.append(Command(slot.ego_id, acceleration, command))
                 sent[slot.ego_id] = (float(u), int(lane))
             self.links[index].send_step(commands)
             self._sent[index] = sent

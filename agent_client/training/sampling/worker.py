@@ -20,6 +20,7 @@ import numpy as np
 from agent_client.defaults import RESET_TIMEOUT_S
 from agent_client.drivers.mobil import DECISION_INTERVAL
 from agent_client.drivers.policy import ActionScale, lane_choice
+from agent_client.drivers.safety import SafetyLayer
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import BridgeError, ServerError, ServerUnavailable
 from agent_client.rl.features import FeatureMap
@@ -66,10 +67,19 @@ class WorkerSpec:
     retry_for_s: float = 0.0
     residual: str = ""
     """The trainer's `ActionScale.residual`: what the actor's output corrects."""
+    residual_reach: float = 2.0
+    residual_shield: bool = True
+    residual_lanes: str = "follow"
+    """The trainer's `ActionScale.reach`, `.shield` and whether its lanes are the reference's."""
     reset_timeout_s: float = RESET_TIMEOUT_S
     simulator_args: str | None = None
     """Start a simulator of its own with this sim-server command line (`OwnSimulator`) and
     drive it, not `address`."""
+    safety_layer: bool = False
+    """Drive through the safety layer, as the policy does when it drives
+    (`TrainConfig.safety_layer_training`)."""
+    override_penalty: float = 0.0
+    """Taken off the reward of a decision the safety layer overrode."""
 
 
 @dataclass(frozen=True)
@@ -155,15 +165,19 @@ class SamplingWorker:
         features = FeatureMap(spec.features, lane_phase_every=spec.lane_phase_every)
         lanes = lane_choice(
             spec.n_lanes, spec.lane_every, spec.lane_gap_rule, spec.residual,
-            spec.lane_route_masks,
+            spec.lane_route_masks, spec.residual_lanes,
         )  # fmt: skip
         interval = float(spec.options.get("decision_interval", DECISION_INTERVAL))
-        scale = ActionScale.from_schema(self.env.welcome.action, spec.residual, interval)
+        scale = ActionScale.from_schema(
+            self.env.welcome.action, spec.residual, interval, spec.residual_reach,
+            spec.residual_shield,
+        )  # fmt: skip
         self.exploration = Exploration(spec, scale, spec.seed + 7919 * (index + 1))
         self._seeds = (first_seed + index + stride * k for k in range(2**31))
+        safety = SafetyLayer(interval, scale.low) if spec.safety_layer else None
         self.local = LocalCollector(
             [self.env], features, lanes, scale, self.exploration, self._next_seed,
-            self._episode_started, spec.reset_options,
+            self._episode_started, spec.reset_options, safety, spec.override_penalty,
         )  # fmt: skip
         self._failures_in_a_row = 0
 

@@ -149,3 +149,20 @@ def test_without_the_routes_masks_the_policy_decides_its_mandatory_changes() -> 
     obs = make_observation(ego=ego(0), road=road)
     assert LaneChoice(3).mask(obs).tolist() == [False, True, False]  # the route's, or nothing
     assert LaneChoice(3, route_masks=False).mask(obs).tolist() == [True, True, False]
+
+
+def test_with_the_reference_as_its_default_the_policy_may_follow_it_or_choose_its_own() -> None:
+    """Four choices: the reference's change first, then keep / left / right of the policy's
+    own, so that a policy cloned on the reference starts as the reference and leaves it only
+    where a choice of its own is worth more."""
+    wants_left = LaneChoice(4, reference=lambda obs, due: 1)
+    obs = make_observation(ego=ego(1))
+    assert wants_left.mask(obs).tolist() == [True, True, True, True]
+    assert [wants_left.command(i, obs) for i in range(4)] == [1, 0, 1, -1]
+    assert wants_left.index_of(1, obs) == 0 and wants_left.index_of(-1, obs) == 3
+    assert wants_left.index_of(0, obs) == 1
+    leftmost = make_observation(ego=ego(2))
+    assert wants_left.command(0, leftmost) == 0  # no lane there: the reference keeps
+    assert wants_left.mask(leftmost).tolist() == [True, True, False, True]
+    with pytest.raises(ValueError, match="reference"):
+        LaneChoice(4)

@@ -161,7 +161,9 @@ def test_cflc_trains_with_a_steeper_headway_term_and_other_scenarios_with_the_de
         TrainConfig(scenario=["merge", "cf"], episodes=2 * TrainConfig().episodes), INTEGRATED
     )
     assert recommended(["merge", "cf"]) == several  # as many episodes of each as one alone
-    assert several.residual == "none" and not several.lane_route_masks and several.speed_gain > 0
+    assert several.residual == "idm+mobil" and several.residual_reach >= 9.0
+    assert not several.residual_shield and several.residual_lanes == "default"
+    assert not several.lane_route_masks and several.speed_gain > 0
     assert several.features == "drive" and several.pretrain_idm
     assert recommended(["merge", "cflc"]).reward_params == {"headway_sigma": 0.2}
     assert recommended(["merge", "cflc"], reward="ra3").reward_params == {}
