@@ -17,6 +17,10 @@ policy decide everything else. The rules, each judged on the observation alone:
   lane to cross of the end of a lane the route must leave, the change towards the route is
   asked for whatever the policy chose (the simulator still refuses an unsafe gap); and the end
   of the lane is a stop line, as above.
+* **a stop nothing calls for** — standing (slower than `STANDSTILL_SPEED`, the servers'
+  unreasonable stop) with the road ahead free for `FREE_AHEAD` (no leader, no stop line, no lane
+  end that near), the ego moves off at `MOVE_OFF` at least: such a stop ends the episode as a
+  failure (``stopped``).
 
 Where none applies, the policy's decision is applied as it is. `SafetyLayer.apply` returns the
 decision and what it overrode; the episode loop counts the steps and the lane changes the layer
@@ -40,6 +44,12 @@ URGENT_TIME = 4.0
 within which the layer asks for the change the route needs."""
 URGENT_DISTANCE = 40.0
 """m: the same, at least."""
+STANDSTILL_SPEED = 1.0
+"""m/s: slower than this counts as standing (the servers' ``stop_speed``)."""
+FREE_AHEAD = 20.0
+"""m of road ahead free of a leader, a stop line and a lane end, for a stop to be uncalled for."""
+MOVE_OFF = 1.0
+"""m/s²: the acceleration the layer moves a needlessly standing ego off with, at least."""
 TOLERANCE = 1e-6
 
 
@@ -86,6 +96,8 @@ class SafetyLayer:
         if acceleration > stop + TOLERANCE:
             acceleration = stop
             rule = rule or ("stop_line" if road.stop_line <= lane_end else "lane_end")
+        if not rule and acceleration < MOVE_OFF - TOLERANCE and _needless_stop(obs, lane_end):
+            acceleration, rule = min(MOVE_OFF, safe, stop), "standstill"
         if not rule and not lane_rule:
             return acceleration, lane, NONE
         return acceleration, lane, Override(bool(rule), lane != lane_change, rule or lane_rule)
@@ -149,6 +161,18 @@ class SafetyLayer:
             else:
                 high = mid
         return low
+
+
+def _needless_stop(obs: Observation, lane_end: float) -> bool:
+    """Standing with the road ahead free: no leader, stop line or lane end within
+    `FREE_AHEAD`."""
+    if obs.ego.speed >= STANDSTILL_SPEED:
+        return False
+    leader = obs.neighbours.leader
+    if leader.present and leader.gap < FREE_AHEAD:
+        return False
+    road = road_ahead(obs)
+    return road.stop_line >= FREE_AHEAD and lane_end >= FREE_AHEAD
 
 
 def _route_side(obs: Observation) -> int:

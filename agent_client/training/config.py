@@ -413,6 +413,7 @@ INTEGRATED: dict[str, Any] = {
     "pretrain_episodes": 10,
     "speed_gain": 0.01,
     "safety_layer_training": True,
+    "override_penalty": 2.0,
     "reward_params": {"headway_sigma": 0.2},
 }
 """The integrated driver over several scenarios (the built-in roads: `cflc`, `merge`, `exit`,

@@ -7,7 +7,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from agent_client.constants import JERK_COMFORT_LIMIT
-from agent_client.evaluation.targets import CEILING_TARGET, HEADWAY_TARGET, JERK_TARGET
+from agent_client.evaluation.targets import (
+    CEILING_TARGET,
+    HEADWAY_TARGET,
+    JERK_TARGET,
+    SAFETY_TARGET,
+)
 
 if TYPE_CHECKING:
     from agent_client.training.trainer import Trainer
@@ -42,9 +47,10 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
         if config.eval_every
         else "none (eval_every = 0)"
     )
+    speed = f"{1 + config.speed_gain:g}x as fast as" if config.speed_gain else "as fast as"
     judged = (
-        " (collisions, route ends and the ceiling per scenario; jerk, headways and speed over "
-        "the whole evaluation)"
+        " (collisions, red lights and route ends per scenario; jerk, headways, speed, the "
+        "ceiling and the safety layer over the whole evaluation)"
         if len(config.scenarios) > 1
         else ""
     )
@@ -65,11 +71,12 @@ def plan_lines(trainer: Trainer, out: Path) -> list[str]:
         f"{config.reward}, {trainer.features.name} features, {lanes}{egos}) on {where_trained}",
         f"  sampling: {trainer.sampling}{why}: {sampling}",
         f"  evaluations: {evaluations}",
-        f"  targets: no collision, <= {100 * JERK_TARGET:g} % of jerk above "
-        f"{JERK_COMFORT_LIMIT:g} m/s^3, <= {100 * HEADWAY_TARGET:g} % of headways under 1 s, "
-        f"as fast as the reference ({reference}), >= {100 * CEILING_TARGET:g} % of the "
-        "leader-at-entry ceiling; where lanes end, every episode reaching the end of its route"
-        + judged,
+        f"  targets: no collision, no red light passed, <= {100 * JERK_TARGET:g} % of jerk "
+        f"above {JERK_COMFORT_LIMIT:g} m/s^3, <= {100 * HEADWAY_TARGET:g} % of headways under "
+        f"1 s, {speed} the reference ({reference}), >= {100 * CEILING_TARGET:g} % of the "
+        "leader-at-entry ceiling, the safety layer driving <= "
+        f"{100 * SAFETY_TARGET:g} % of decisions; where lanes end, every episode reaching the "
+        "end of its route" + judged,
         f"  stops at: {stops}; at most {' or '.join(limits)}; Ctrl-C checkpoints",
         f"  run folder: {out} (policy.pt, episodes.csv, evaluations.csv, tensorboard/)",
     ]

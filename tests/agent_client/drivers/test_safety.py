@@ -90,3 +90,14 @@ def test_the_episode_counts_the_layers_decisions() -> None:
     assert summary.safety_steps == 2 and summary.safety_lane_changes == 1
     assert episode_summary(replace(episode, overrides=[NONE, NONE])).safety_steps == 0
     assert math.isclose(summary.steps, 2)
+
+
+def test_a_stop_nothing_calls_for_is_ended_by_moving_off() -> None:
+    standing = observation(0.2)
+    acceleration, _, override = LAYER.apply(standing, -1.0, 0)
+    assert override.rule == "standstill" and acceleration >= 1.0
+    queued = observation(0.2, Neighbour(True, 6.0, 0.0, 0.0, "queue"))
+    assert LAYER.apply(queued, -1.0, 0)[2] == NONE  # a queue: waiting is right
+    at_red = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=3.0, signal_distance=3.0, signal_state="red")
+    assert LAYER.apply(observation(0.2, road=at_red), -1.0, 0)[2].rule != "standstill"
+    assert LAYER.apply(standing, 1.5, 0)[2] == NONE  # it moves off itself

@@ -37,8 +37,11 @@ def test_over_several_scenarios_the_plan_says_what_is_judged_where() -> None:
     config = TrainConfig(scenario=["merge", "exit", "cflc"], stop_when_converged=True)
     text = "\n".join(plan_lines(trainer_for(config), Path("runs/x")))
     assert "merge, exit, cflc" in text and "per scenario on held-out seeds" in text
-    assert "collisions, route ends and the ceiling per scenario" in text
-    assert "jerk, headways and speed over the whole evaluation" in text
+    assert "collisions, red lights and route ends per scenario" in text
+    assert "jerk, headways, speed, the ceiling and the safety layer over the whole" in text
+    assert "no red light passed" in text and "as fast as the reference" in text
+    gain = TrainConfig(scenario=["merge", "cflc"], speed_gain=0.01)
+    assert "1.01x as fast as the reference" in "\n".join(plan_lines(trainer_for(gain), Path("x")))
 
 
 def test_the_plan_says_who_steps_the_servers() -> None:
