@@ -315,8 +315,8 @@ def test_background_evaluations_give_the_run_that_blocking_ones_give(
     # Evaluations on an idle-priority server of their own: in the background (the default) a
     # verdict is read when the next evaluation is due, blocking (eval_while_training off) at
     # once. The episodes, the verdicts, when they ran and the policy are the same.
-    config = fast_config(episodes=14, seed=5, eval_every=2, eval_episodes=2, eval_gate=0,
-                         eval_budget=0.5)  # fmt: skip
+    config = fast_config(episodes=30, seed=5, eval_every=2, eval_episodes=2, eval_gate=0,
+                         eval_budget=2.0)  # fmt: skip
     runs: dict[str, dict[str, Any]] = {}
     with (
         sim_server("--backend", "sumo", "--idle-priority", cache_dir=scenario_cache) as evaluate,

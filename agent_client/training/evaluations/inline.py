@@ -130,7 +130,11 @@ class Evaluator:
                 self._running[index] = _Running(seed_index, episode)
                 self._sent[index] = "reset"
             elif running is not None and running.obs is not None:
-                acceleration, lane_change = self._drivers[index].act(running.obs)
+                driver = self._drivers[index]
+                acceleration, lane_change = driver.act(running.obs)
+                override = getattr(driver, "override", None)  # as `run_episode` counts it
+                if override is not None:
+                    running.episode.overrides.append(override)
                 env.send_command(acceleration, lane_change)
                 self._sent[index] = "step"
 
