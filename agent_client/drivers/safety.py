@@ -17,10 +17,11 @@ policy decide everything else. The rules, each judged on the observation alone:
   lane to cross of the end of a lane the route must leave, the change towards the route is
   asked for whatever the policy chose (the simulator still refuses an unsafe gap); and the end
   of the lane is a stop line, as above.
-* **a stop nothing calls for** — standing (slower than `STANDSTILL_SPEED`, the servers'
-  unreasonable stop) with the road ahead free for `FREE_AHEAD` (no leader, no stop line, no lane
-  end that near), the ego moves off at `MOVE_OFF` at least: such a stop ends the episode as a
-  failure (``stopped``).
+* **a stop nothing calls for** — standing (slower than `STANDSTILL_SPEED`) where the servers
+  would end the episode as an unreasonable stop (``stopped``, protocol §6: no leader within
+  `STOP_GAP` or one that drives away, no stop line within `STOP_GAP`, no end of a lane the
+  route must leave within `GAP_WAIT_DISTANCE` per lane to cross), the ego moves off at
+  `MOVE_OFF` at least.
 
 Where none applies, the policy's decision is applied as it is. `SafetyLayer.apply` returns the
 decision and what it overrode; the episode loop counts the steps and the lane changes the layer
@@ -46,8 +47,11 @@ URGENT_DISTANCE = 40.0
 """m: the same, at least."""
 STANDSTILL_SPEED = 1.0
 """m/s: slower than this counts as standing (the servers' ``stop_speed``)."""
-FREE_AHEAD = 20.0
-"""m of road ahead free of a leader, a stop line and a lane end, for a stop to be uncalled for."""
+STOP_GAP = 15.0
+"""m: a leader or a stop line this close makes standing right (the servers' ``stop_gap``)."""
+GAP_WAIT_DISTANCE = 150.0
+"""m per lane to cross: this close to the end of a lane the route must leave, standing waits
+for a gap (the servers' rule, protocol §6)."""
 MOVE_OFF = 1.0
 """m/s²: the acceleration the layer moves a needlessly standing ego off with, at least."""
 TOLERANCE = 1e-6
@@ -60,7 +64,7 @@ class Override:
     acceleration: bool = False
     lane_change: bool = False
     rule: str = ""
-    """Which rule: "collision", "stop_line", "lane_end" ("" none)."""
+    """Which rule: "collision", "stop_line", "lane_end", "standstill" ("" none)."""
 
     @property
     def any(self) -> bool:
@@ -96,7 +100,7 @@ class SafetyLayer:
         if acceleration > stop + TOLERANCE:
             acceleration = stop
             rule = rule or ("stop_line" if road.stop_line <= lane_end else "lane_end")
-        if not rule and acceleration < MOVE_OFF - TOLERANCE and _needless_stop(obs, lane_end):
+        if not rule and acceleration < MOVE_OFF - TOLERANCE and _needless_stop(obs):
             acceleration, rule = min(MOVE_OFF, safe, stop), "standstill"
         if not rule and not lane_rule:
             return acceleration, lane, NONE
@@ -163,16 +167,18 @@ class SafetyLayer:
         return low
 
 
-def _needless_stop(obs: Observation, lane_end: float) -> bool:
-    """Standing with the road ahead free: no leader, stop line or lane end within
-    `FREE_AHEAD`."""
+def _needless_stop(obs: Observation) -> bool:
+    """Standing where the road does not make the ego wait (the servers' unreasonable stop)."""
     if obs.ego.speed >= STANDSTILL_SPEED:
         return False
     leader = obs.neighbours.leader
-    if leader.present and leader.gap < FREE_AHEAD:
+    if leader.present and (leader.gap <= STOP_GAP or leader.speed <= obs.ego.speed):
         return False
     road = road_ahead(obs)
-    return road.stop_line >= FREE_AHEAD and lane_end >= FREE_AHEAD
+    if road.stop_line <= STOP_GAP:
+        return False
+    lanes = abs(road.lanes_to_change)
+    return not (lanes > 0 and road.lane_end <= GAP_WAIT_DISTANCE * lanes)
 
 
 def _route_side(obs: Observation) -> int:

@@ -156,7 +156,8 @@ class EpisodeSummary:
     safety_lane_changes: int = 0
     """Lane changes the safety layer decided that started."""
     safety_rules: str = ""
-    """The layer's decisions by rule, ``collision:N stop_line:N lane_end:N`` ("" none)."""
+    """The layer's decisions by rule, ``collision:N stop_line:N lane_end:N standstill:N`` ("":
+    none)."""
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)

@@ -101,3 +101,15 @@ def test_a_stop_nothing_calls_for_is_ended_by_moving_off() -> None:
     at_red = Road(ROAD_RANGE, 0, 0.0, 0.0, stop_line=3.0, signal_distance=3.0, signal_state="red")
     assert LAYER.apply(observation(0.2, road=at_red), -1.0, 0)[2].rule != "standstill"
     assert LAYER.apply(standing, 1.5, 0)[2] == NONE  # it moves off itself
+    # The servers' rule (protocol §6) decides what a needless stop is, not a distance of its own:
+    going = observation(0.2, Neighbour(True, 18.0, 0.0, 5.0, "away"))
+    assert LAYER.apply(going, -1.0, 0)[2].rule == "standstill"  # its leader drives away
+    slower = observation(0.2, Neighbour(True, 18.0, 0.0, 0.0, "standing"))
+    assert LAYER.apply(slower, -1.0, 0)[2] == NONE
+    far_red = Road(
+        ROAD_RANGE, 0, 0.0, 0.0, stop_line=18.0, signal_distance=18.0, signal_state="red"
+    )
+    acceleration, _, override = LAYER.apply(observation(0.2, road=far_red), -1.0, 0)
+    assert override.rule == "standstill" and 0.0 < acceleration <= 1.0  # closer, not through
+    gap_wait = Road(100.0, 1, 100.0, ROAD_RANGE)  # a lane to reach 100 m ahead: waits for a gap
+    assert LAYER.apply(observation(0.2, road=gap_wait, lanes=2), -1.0, 0)[2] == NONE
