@@ -7,10 +7,11 @@
 #      measured best for it (configs/cf.toml spells them out), until three greedy evaluations
 #      in a row meet every target (or the time cap), and evaluates it against the calibrated IDM,
 #   3. trains the integrated car-following and lane-changing model on cflc (its defaults),
-#   4. evaluates it against the cf policy (the paper's Fig. 13) and IDM,
+#   4. evaluates it against the cf policy (the paper's Fig. 13) and the strongest baselines,
+#      IDM + MOBIL and SUMO's own driver, on the same seeds,
 #   5. writes one report of both.
-# Takes about 4 minutes on 2 cores (3.6 measured; at most 12); shows progress throughout.
-# Environment: CF_MINUTES (training cap on cf, default 3), CFLC_MINUTES (default 5),
+# Takes about 5 minutes on 2 cores (4.5 measured; at most 15); shows progress throughout.
+# Environment: CF_MINUTES (training cap on cf, default 3), CFLC_MINUTES (default 8),
 # EVAL_EPISODES (default 20), OUT.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -55,18 +56,19 @@ agent-client calibrate-idm --server "${servers[0]}" --scenario cf --out "$out/id
 echo "== 2/5 training the recommended learner (TD3) on cf (its recommended settings: the defaults)"
 agent-client train "${training[@]}" --scenario cf --out "$out/train-cf" --episodes 1000 \
     --minutes "${CF_MINUTES:-3}" --stop-when-converged
-echo "== evaluating the cf policy against the calibrated IDM"
+echo "== evaluating the cf policy against the calibrated IDM and SUMO's own driver"
 agent-client evaluate --server "${eval_servers[0]}" --scenario cf --policy "$out/train-cf/policy.pt" \
-    --baseline "idm:$out/idm.json" --episodes "$episodes" --out "$out/eval/cf" \
+    --baseline "idm:$out/idm.json" --reference sumo --episodes "$episodes" --out "$out/eval/cf" \
     --run "$out/train-cf"
 
 echo "== 3/5 training the integrated car-following and lane-changing model on cflc"
 agent-client train "${training[@]}" --scenario cflc \
     --out "$out/train-cflc" --episodes 1000 \
-    --minutes "${CFLC_MINUTES:-5}" --stop-when-converged
-echo "== 4/5 evaluating it against the cf policy and IDM"
+    --minutes "${CFLC_MINUTES:-8}" --stop-when-converged
+echo "== 4/5 evaluating it against IDM + MOBIL, SUMO's own driver and the cf policy"
 agent-client evaluate --server "${eval_servers[0]}" --scenario cflc \
-    --policy "$out/train-cflc/policy.pt" --baseline idm --cf-policy "$out/train-cf/policy.pt" \
+    --policy "$out/train-cflc/policy.pt" --baseline idm+mobil --reference sumo \
+    --cf-policy "$out/train-cf/policy.pt" \
     --episodes "$episodes" --out "$out/eval/cflc" --run "$out/train-cflc"
 
 echo "== 5/5 one report of both cases"

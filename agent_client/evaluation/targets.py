@@ -76,7 +76,7 @@ EVALUATION_TARGETS = (
 average speed, over all its episodes against the reference's on the same seeds. Per scenario,
 ten episodes make these figures noisier than the margin a good policy keeps: a policy faster
 than IDM + MOBIL on every scenario over 50 held-out seeds missed ``as_fast_as_idm`` on one
-scenario or another in 7 of 12 evaluations (docs/learner.md); the leader-at-entry ceiling,
+scenario or another in 7 of 12 evaluations (docs/learner-design.md); the leader-at-entry ceiling,
 where only one or two of a scenario's ten episodes have one, likewise. What single episodes
 decide (a collision, a red light, an arrival) stays per scenario."""
 

@@ -397,8 +397,8 @@ class SafeReward:
     - Comfort: a smooth quadratic gate on jerk, (jerk / 5.6)^2 = 1 at the paper's threshold,
       where the step keeps 1 - w_jerk = 50 % of its drive term; no cliff for exploration noise to
       trip, and a cost in proportion to what the step earns, so a chattering (bang-bang)
-      controller loses half its reward whatever its speed (docs/learner.md says why a gate and
-      not an additive cost).
+      controller loses half its reward whatever its speed (docs/learner-design.md, "`safe`",
+      says why a gate and not an additive cost).
 
     - ``stop_penalty`` (default 0) costs the step that ends an episode as an unreasonable
       stop (the server's ``stopped``: standing with the road ahead free), a failure like a

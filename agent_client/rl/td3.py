@@ -670,8 +670,9 @@ def _flushing_denormals() -> Iterator[None]:
     """Flush denormal numbers to zero for the duration of an update (this thread's FTZ/DAZ).
 
     Adam's second moments of rarely used weights decay into denormals, which the CPU computes
-    many times slower: without this, updates slow down as training goes on (docs/learner.md,
-    "Speed"). Zero instead of 1e-39 changes no result that matters.
+    many times slower: without this, updates slow down as training goes on
+    (docs/learner-design.md, "Speed: a learner that keeps up with its simulator"). Zero
+    instead of 1e-39 changes no result that matters.
     """
     torch.set_flush_denormal(True)
     try:

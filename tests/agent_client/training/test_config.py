@@ -152,11 +152,16 @@ def test_the_recommended_reward_parameters_go_only_with_their_reward() -> None:
     assert config.reward_params == {} and config.eval_budget == 1.0
 
 
-def test_cflc_trains_with_a_steeper_headway_term_and_other_scenarios_with_the_defaults() -> None:
-    steeper = TrainConfig(scenario="cflc", reward_params={"headway_sigma": 0.2})
-    assert recommended("cflc") == steeper
-    assert build_config(build_parser().parse_args(["train", "--scenario", "cflc"])) == steeper
-    assert recommended("cflc", reward="ra3") == TrainConfig(scenario="cflc", reward="ra3")
+def test_cflc_trains_the_integrated_driver_and_other_scenarios_with_the_defaults() -> None:
+    cflc = recommended("cflc")
+    assert cflc.reward_params == {"headway_sigma": 0.2}
+    assert cflc.residual == "idm+mobil" and cflc.residual_lanes == "default"
+    assert not cflc.residual_shield and cflc.residual_reach >= 9.0
+    assert cflc.reference == "idm+mobil" and cflc.speed_gain > 0  # beats the strongest baseline
+    assert cflc.safety_layer_training and cflc.override_penalty > 0 and cflc.pretrain_idm
+    assert build_config(build_parser().parse_args(["train", "--scenario", "cflc"])) == cflc
+    other_reward = recommended("cflc", reward="ra3")  # the parametrisation stays, the knee goes
+    assert other_reward.reward_params == {} and other_reward.residual == "idm+mobil"
     several = apply_overrides(
         TrainConfig(scenario=["merge", "cf"], episodes=2 * TrainConfig().episodes), INTEGRATED
     )
