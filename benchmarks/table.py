@@ -12,16 +12,18 @@ result on them), through real ``sim-server`` processes, and prints per map and d
 * shares of time headways under 1 s and of jerk samples above 5.6 m/s³, and the share of steps
   the safety layer drove (pooled over the trips; bootstrap intervals over trips).
 
-Maps: the built-in scenarios (``cflc``, ``merge``, ``exit``, ``lanedrop``, ``urban``), networks
-SUMO ships with eclipse-sumo (``sumo:A10KW``, a motorway interchange from OpenStreetMap;
-``sumo:bs3d``, Braunschweig's inner city; ``sumo:ramp``; ``sumo:DRT``, a town from
-OpenStreetMap), and yours (``--net FILE``, ``--osm FILE``). Each map is served by a server of its
-own (``--workers 2``: the trips are spread over two simulators), started and stopped here.
+Maps: the built-in scenarios (``cflc``, ``merge``, ``exit``, ``lanedrop``, ``urban``; ``cf`` on
+request), networks SUMO ships with eclipse-sumo (``sumo:A10KW``, a motorway interchange from
+OpenStreetMap; ``sumo:bs3d``, Braunschweig's inner city; ``sumo:ramp``; ``sumo:DRT``, a town
+from OpenStreetMap), and yours (``--net FILE``, ``--osm FILE``). Each map is served by a server
+of its own (``--workers 2``: the trips are spread over two simulators), started and stopped
+here.
 
     python benchmarks/table.py --episodes 50                  # the default grid, baselines only
     python benchmarks/table.py --policy pretrained:roads --episodes 50
     python benchmarks/table.py --maps urban sumo:bs3d --osm town.osm --drivers idm+mobil sumo \
         --episodes 100
+    python benchmarks/table.py --rows-of pretrained:cflc --tables benchmarks/results/table-*.json
 
 Writes benchmarks/results/table-DATE.json (``--out``) and a picture beside it. This is a
 measurement, not a test: an hour and more for the default grid.
@@ -56,6 +58,8 @@ from protocol.messages import EndReason
 from protocol.readiness import LISTENING, stop_process, wait_for_line
 
 BUILT_IN = ("cflc", "merge", "exit", "lanedrop", "urban")
+ONE_LANE = ("cf",)
+"""Built-in too, but not in the default grid: the paper's first case, one lane."""
 SHIPPED = {
     "A10KW": "A10KW/osm.net.xml",
     "bs3d": "bs3d/bs.net.xml",
@@ -91,7 +95,19 @@ def main() -> int:
     parser.add_argument("--episodes", type=int, default=50, help="test seeds per map (<= 100)")
     parser.add_argument("--option", nargs="*", default=[], help="KEY=VALUE for every reset")
     parser.add_argument("--out", type=Path, help="JSON file (default benchmarks/results/...)")
+    parser.add_argument(
+        "--rows-of", metavar="DRIVER", help="drive nothing: print DRIVER's rows of --tables"
+    )
+    parser.add_argument("--tables", nargs="*", type=Path, default=[], help="with --rows-of")
     args = parser.parse_args()
+    if args.rows_of:
+        missing = [p for p in args.tables if not p.is_file()]
+        if not args.tables or missing:
+            what = f"no such file: {missing[0]}" if missing else "give the --tables"
+            print(f"error: --rows-of: {what}", file=sys.stderr)
+            return 2
+        print(card_rows(args.rows_of, args.tables))
+        return 0
     try:
         maps = [*map(parse_map, args.maps), *(user_map(p, "--net") for p in args.net)]
         maps += [user_map(p, "--osm") for p in args.osm]
@@ -123,7 +139,7 @@ def main() -> int:
 
 
 def parse_map(name: str) -> Map:
-    if name in BUILT_IN:
+    if name in BUILT_IN or name in ONE_LANE:
         return Map(name, name)
     if name.startswith("sumo:"):
         import sumo
@@ -169,10 +185,11 @@ def drive_map(
         halves = [seeds[0::2], seeds[1::2]]
         found: list[dict[str, list[EpisodeSummary]]] = [{}, {}]
         errors: list[BaseException] = []
+        progress = Progress(spot.name, len(seeds))
 
         def work(k: int) -> None:
             try:
-                found[k] = drive_seeds(addresses[k], spot, specs, halves[k], extra)
+                found[k] = drive_seeds(addresses[k], spot, specs, halves[k], extra, progress)
             except BaseException as exc:  # reported below, with the map named
                 errors.append(exc)
 
@@ -191,8 +208,30 @@ def drive_map(
     return episodes
 
 
+class Progress:
+    """One line per tenth of a map's trips (every driver done on them), from both threads."""
+
+    def __init__(self, name: str, total: int) -> None:
+        self.name, self.total, self.done = name, total, 0
+        self.started = time.monotonic()
+        self.lock = threading.Lock()
+
+    def trip_done(self) -> None:
+        with self.lock:
+            self.done += 1
+            if self.done % max(1, self.total // 10) == 0 or self.done == self.total:
+                minutes = (time.monotonic() - self.started) / 60
+                line = f"   {self.name}: {self.done}/{self.total} trips, {minutes:.1f} min"
+                print(line, flush=True)
+
+
 def drive_seeds(
-    address: str, spot: Map, specs: Sequence[str], seeds: Sequence[int], extra: dict[str, Any]
+    address: str,
+    spot: Map,
+    specs: Sequence[str],
+    seeds: Sequence[int],
+    extra: dict[str, Any],
+    progress: Progress,
 ) -> dict[str, list[EpisodeSummary]]:
     env = RemoteEnv(
         address, spot.scenario, reward="safe", reset_timeout_s=600.0, **dict(spot.options), **extra
@@ -203,6 +242,7 @@ def drive_seeds(
             for spec in specs:
                 episode = run_episode(env, load_driver(spec), seed)
                 found[spec].append(episode_summary(episode))
+            progress.trip_done()
     finally:
         env.close()
     return found
@@ -355,6 +395,32 @@ def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
             f"| {100 * f['jerk_above_limit']:.2f} %{_ci(f['jerk_above_limit_ci'], 2, 100)} "
             f"| {100 * f['safety_layer']:.2f} %{_ci(f['safety_layer_ci'], 2, 100)} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+def card_rows(spec: str, tables: Sequence[Path]) -> str:
+    """One driver's rows, one per map, of the table files given: a model card's table."""
+    lines = [
+        "| map | trips | arrivals | collisions | red lights | speed, m/s | vs the faster baseline, "
+        "m/s | headway < 1 s | jerk > 5.6 | safety layer |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for path in tables:
+        results = json.loads(path.read_text())["results"]
+        for name, figures in results.items():
+            f = figures.get(spec)
+            if f is None:
+                continue
+            versus = [f[k] for k in (f"vs_{b}" for b in STRONG) if k in f]
+            best = min(versus, key=lambda v: v["difference"]) if versus else None
+            vs = f"{best['difference']:+.2f}{_ci(best['ci'])}" if best else ""
+            lines.append(
+                f"| `{name}` | {f['trips']} | {100 * f['arrivals']:.0f} % "
+                f"| {100 * f['collisions']:.0f} % | {100 * f['red_lights']:.0f} % "
+                f"| {f['speed']:.2f}{_ci(f['speed_ci'])} | {vs} "
+                f"| {100 * f['headway_below_1s']:.1f} % | {100 * f['jerk_above_limit']:.2f} % "
+                f"| {100 * f['safety_layer']:.2f} % |"
+            )
     return "\n".join(lines) + "\n"
 
 
