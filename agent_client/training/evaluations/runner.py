@@ -38,6 +38,9 @@ from agent_client.training.run_log import RunLog
 from agent_client.training.sampling.collect import EPISODE_FAILURES, MAX_FAILURES_IN_A_ROW
 
 T = TypeVar("T")
+UNTRAINED = 100.0
+"""Taken off the score of an evaluation before the actor learned (it drives as its reference):
+`policy.pt` is the best trained policy once there is one."""
 
 
 class Retrying(Protocol):
@@ -338,6 +341,8 @@ class Evaluations:
         result = aggregate(summaries)
         ratio = result["speed_ratio_to_ceiling"]  # NaN where no ceiling is reported (the ring)
         score = sum(met.values()) + (ratio if math.isfinite(ratio) else 0.0)
+        if not job.context.get("trained", True):
+            score -= UNTRAINED  # the reference's clone: any trained policy is kept over it
         if complete and score >= progress.best_score:  # a stopped one's figures are partial
             progress.best_score = score
             self.training.save_policy("policy.pt", job.context["policy_state"])

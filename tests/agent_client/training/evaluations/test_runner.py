@@ -4,6 +4,7 @@ books its verdict, the best policy is saved, and passes in a row converge the ru
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -146,3 +147,32 @@ def test_a_resumed_runs_evaluation_is_kept_until_it_has_run_again(
     assert [(e["episode"], e["global_step"]) for e in progress.evaluations] == [(7, 700)]
     assert runs.running() is None
     assert recorder.saved == ["policy.pt:saved"]  # the first verdict is the best so far
+
+
+def test_a_trained_policy_is_kept_over_the_reference_it_started_as(
+    env: RemoteEnv, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Before its actor learns, a residual policy drives as its reference and may meet every
+    # target; `policy.pt` must still be what was learned once something was, even if worse.
+    verdicts = iter([True, False])
+    monkeypatch.setattr(
+        reference_module, "judge", lambda scenarios, whole, gain: ({"all": next(verdicts)}, "")
+    )
+    recorder, progress, learned = Recorder(), Progress(), [False]
+    runs = evaluations(env, tmp_path, recorder)
+    hooks = recorder.hooks(env)
+    runs.training = dataclasses.replace(
+        hooks,
+        trained=lambda: learned[0],
+        policy_state=lambda: {"label": "trained" if learned[0] else "clone"},
+    )
+    log = RunLog(tmp_path)
+    try:
+        runs.begin(progress, log)
+        end_episodes(runs, progress, 2)
+        learned[0] = True
+        end_episodes(runs, progress, 2)
+    finally:
+        log.close()
+    assert [e["trained"] for e in progress.evaluations] == [False, True]
+    assert recorder.saved == ["policy.pt:clone", "policy.pt:trained"]
