@@ -107,7 +107,8 @@ def main() -> int:
             rounds["bridge"].append((time.perf_counter() - start) / args.steps)
             assert not obs.reason, f"the ego's drive ended early ({obs.reason}): longer trip"
             if client is not None:
-                rounds["wire"].append(wire_round(client, scenario, args.seed, options, args.steps))
+                asked = {k: v for k, v in options.items() if info.options.get(k) != v}
+                rounds["wire"].append(wire_round(client, scenario, args.seed, asked, args.steps))
             print(
                 f"round {len(vehicles)}: {vehicles[-1]} vehicles, bare "
                 f"{1e3 * rounds['bare'][-1]:.3f} ms/step, bridge {1e3 * rounds['bridge'][-1]:.3f}"

@@ -23,7 +23,7 @@ from typing import Any
 from agent_client.drivers import pretrained
 from agent_client.drivers.episode import Driver, SimulatorDriver
 from agent_client.drivers.idm import IDMDriver, IDMParams
-from agent_client.drivers.mobil import IDMMobilDriver
+from agent_client.drivers.mobil import IDMMobilDriver, MobilParams
 from agent_client.errors import UsageError
 
 IDM = "idm"
@@ -53,7 +53,8 @@ def load_driver(spec: str) -> Driver:
     if spec == IDM_MOBIL:
         return IDMMobilDriver()
     if spec.startswith(IDM_MOBIL_PREFIX):
-        return IDMMobilDriver(load_idm_params(Path(spec[len(IDM_MOBIL_PREFIX) :])))
+        path = Path(spec[len(IDM_MOBIL_PREFIX) :])
+        return IDMMobilDriver(load_idm_params(path), load_mobil_params(path))
     if spec == SIMULATOR:
         return SimulatorDriver()
     path = policy_path(spec)
@@ -80,6 +81,20 @@ def policy_path(spec: str) -> Path:
     return Path(spec)
 
 
+def load_mobil_params(path: Path) -> MobilParams:
+    """MOBIL's parameters from the ``mobil`` map of an ``idm+mobil:FILE.json`` (its defaults
+    where the file has none): ``{"params": {"T": 0.8}, "mobil": {"politeness": 0.0}}``."""
+    data: Any = json.loads(path.read_text())  # read (and checked) by load_idm_params first
+    mobil = data.get("mobil", {}) if isinstance(data, dict) else {}
+    known = [f.name for f in dataclasses.fields(MobilParams)]
+    if not isinstance(mobil, dict) or set(mobil) - set(known):
+        unknown = sorted(set(mobil) - set(known)) if isinstance(mobil, dict) else ["mobil"]
+        raise UsageError(
+            f"idm+mobil:{path}: unknown MOBIL parameter {unknown[0]!r}; known: {', '.join(known)}"
+        )
+    return MobilParams(**mobil)
+
+
 def load_idm_params(path: Path) -> IDMParams:
     """IDM parameters from a JSON file: `calibrate-idm`'s output or a plain parameter map."""
     try:
@@ -89,6 +104,8 @@ def load_idm_params(path: Path) -> IDMParams:
     except json.JSONDecodeError as exc:
         raise UsageError(f"idm:{path}: not JSON: {exc}") from exc
     params = data.get("params", data) if isinstance(data, dict) else None
+    if isinstance(params, dict) and params is data:
+        params = {k: v for k, v in params.items() if k != "mobil"}
     known = [f.name for f in dataclasses.fields(IDMParams)]
     if not isinstance(params, dict):
         raise UsageError(f"idm:{path}: expected a map of IDM parameters ({', '.join(known)})")
