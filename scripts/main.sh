@@ -10,7 +10,7 @@
 #   4. evaluates it against the cf policy (the paper's Fig. 13) and the strongest baselines,
 #      IDM + MOBIL and SUMO's own driver, on the same seeds,
 #   5. writes one report of both.
-# Takes about 5 minutes on 2 cores (4.5 measured; at most 15); shows progress throughout.
+# Takes about 5 minutes on 2 cores (4.5 and 5.2 measured; at most 15); shows progress throughout.
 # Environment: CF_MINUTES (training cap on cf, default 3), CFLC_MINUTES (default 8),
 # EVAL_EPISODES (default 20), OUT.
 set -euo pipefail
