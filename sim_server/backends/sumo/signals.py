@@ -163,13 +163,16 @@ class RedLightWatch:
         or red-yellow when last seen before it (a simulation step earlier). Inside a junction
         the waiting point under the same light is no stop line: the ego clears the junction."""
         inside = self.inside(api, ego_id)
-        first = next((e for e in api.vehicle.getNextTLS(ego_id) if e[_ID] != inside), None)
+        ahead = [e for e in api.vehicle.getNextTLS(ego_id) if e[_ID] != inside]
+        first = ahead[0] if ahead else None
         seen = self._ahead
         self._ahead = None if first is None else (first[_ID], first[_DISTANCE], first[_STATE])
         if seen is None:
             return False
         light, distance, character = seen
-        passed = first is None or first[_ID] != light or first[_DISTANCE] > distance + PASSED_SLACK
+        # Passed when that light is no longer ahead where it was: not when another one came
+        # first (a light close behind a junction appears only once the ego leaves it).
+        passed = not any(e[_ID] == light and e[_DISTANCE] <= distance + PASSED_SLACK for e in ahead)
         if passed:
             self.passed = light
         return passed and character in RED_CHARACTERS
