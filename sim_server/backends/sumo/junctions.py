@@ -50,7 +50,11 @@ class JunctionFoes:
         key = (from_lane, to_lane)
         lanes = self._lanes.get(key)
         if lanes is None:
-            lanes = self._lanes[key] = tuple(sorted(set(lane_api.getFoes(from_lane, to_lane))))
+            # Only a connection has foes: SUMO raises for lanes it does not link directly (a
+            # route's next lane beyond a very short edge, on imported networks).
+            linked = any(link[0] == to_lane for link in lane_api.getLinks(from_lane))
+            foes = lane_api.getFoes(from_lane, to_lane) if linked else ()
+            lanes = self._lanes[key] = tuple(sorted(set(foes)))
         found: list[Foe] = []
         for lane in lanes:
             vehicles = lane_api.getLastStepVehicleIDs(lane)
