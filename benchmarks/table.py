@@ -71,10 +71,10 @@ SHIPPED = {
     "DRT": "DRT/osm.net.xml",
 }
 """Networks eclipse-sumo ships in tools/game (``sumo:NAME``)."""
-DEFAULT_SHIPPED = ("ramp", "DRT", "bs3d")
-"""Not ``A10KW`` by default: its two signals are the game's, each phase 10,000 s long (a player
-switches them), and two thirds of its trips jam behind them whoever drives (docs/results.md,
-"Your own map")."""
+DEFAULT_SHIPPED = ("ramp", "DRT")
+"""Not ``A10KW`` and ``bs3d`` by default: their signals are the game's, each phase 10,000 s and
+1,000 s long (a player switches them), and two thirds of their trips jam behind them whoever
+drives (docs/results.md, "Your own map")."""
 BASELINES = ("idm", "idm+mobil", "sumo")
 STRONG = ("idm+mobil", "sumo")
 """The baselines a policy's speed is compared with, the faster of them per map."""
