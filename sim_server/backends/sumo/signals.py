@@ -44,6 +44,12 @@ PASSED_SLACK = 0.5
 behind the ego): approaching a light, its distance only shrinks (a lane change beside keeps
 it)."""
 
+REACH_SLACK = 2.0
+"""m: a light is passed in a simulation step only if it was at most this much farther than the
+ego drives in that step (at its speed, half as much again) when seen last: entering a junction
+or changing lanes, SUMO's distance to a light hundreds of metres on may grow by a metre, which
+passes nothing."""
+
 _ID, _INDEX, _DISTANCE, _STATE = 0, 1, 2, 3
 """Positions in a `vehicle.getNextTLS` entry."""
 
@@ -170,9 +176,13 @@ class RedLightWatch:
         if seen is None:
             return False
         light, distance, character = seen
-        # Passed when that light is no longer ahead where it was: not when another one came
-        # first (a light close behind a junction appears only once the ego leaves it).
-        passed = not any(e[_ID] == light and e[_DISTANCE] <= distance + PASSED_SLACK for e in ahead)
+        # Passed when that light, within a step's reach, is no longer ahead where it was: not
+        # when another one came first (a light close behind a junction appears only once the
+        # ego leaves it), nor when the distance to a far one grew (a lane change, a junction).
+        reach = 1.5 * api.vehicle.getSpeed(ego_id) * api.simulation.getDeltaT() + REACH_SLACK
+        passed = distance <= reach and not any(
+            e[_ID] == light and e[_DISTANCE] <= distance + PASSED_SLACK for e in ahead
+        )
         if passed:
             self.passed = light
         return passed and character in RED_CHARACTERS
