@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import zmq
 
 from agent_client.conformance.probe import NoReply
+from agent_client.transport.zeromq import POLL_SLICE_MS
 from protocol.transport.direct import FrameReader, FramingError, frame, preamble
 from protocol.transport.endpoint import new_routing_id, parse_endpoint
 from protocol.transport.security import ClientCredentials, secure_client_socket
@@ -67,12 +68,12 @@ class RawPeer:
             self._socket = sock
         sock = self._socket
         sock.send_multipart([REQUEST_ID, b"", *parts])
-        if not sock.poll(int(self.timeout_s * 1000)):
+        if not _poll(sock, self.timeout_s):
             raise NoReply(f"no reply from {self.address} within {self.timeout_s:g} s")
         frames = sock.recv_multipart()
         extra = 0
         deadline = time.monotonic() + settle_s
-        while (left := deadline - time.monotonic()) > 0 and sock.poll(int(left * 1000) + 1):
+        while (left := deadline - time.monotonic()) > 0 and _poll(sock, left):
             sock.recv_multipart()
             extra += 1
         return RawReply(frames, extra)
@@ -133,3 +134,15 @@ def _chunks(sock: socket.socket, deadline: float) -> Iterator[bytes]:
         if not data:
             return
         yield data
+
+
+def _poll(sock: zmq.Socket[bytes], timeout_s: float) -> bool:
+    """Whether `sock` became readable within `timeout_s`, waiting at most `POLL_SLICE_MS` at a
+    time so that a Ctrl-C the kernel handed to one of libzmq's threads is seen soon."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left_ms = int(max(0.0, deadline - time.monotonic()) * 1000) + 1
+        if sock.poll(min(left_ms, POLL_SLICE_MS)):
+            return True
+        if time.monotonic() >= deadline:
+            return False

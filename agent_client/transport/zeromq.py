@@ -31,6 +31,11 @@ from protocol.transport.endpoint import new_routing_id, parse_endpoint
 from protocol.transport.security import ClientCredentials
 from protocol.transport.zeromq import HEARTBEAT_TIMEOUT_MS, connect_req
 
+POLL_SLICE_MS = 200
+"""The longest single wait for a reply: a Ctrl-C that the kernel hands to one of libzmq's I/O
+threads does not wake the main thread's poll, which sees it only when the poll returns (a
+whole `--timeout` later, unsliced: a loaded machine made that likely)."""
+
 _UP = zmq.EVENT_HANDSHAKE_SUCCEEDED
 _LOST = zmq.EVENT_DISCONNECTED
 _REFUSED = zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
@@ -88,7 +93,7 @@ class ZmqChannel(Channel):
         discarded = 0
         while True:
             remaining_ms = int(max(0.0, deadline - time.monotonic()) * 1000)
-            ready = {s for s, _ in zmq.zmq_poll(watched, remaining_ms)}
+            ready = {s for s, _ in zmq.zmq_poll(watched, min(remaining_ms, POLL_SLICE_MS))}
             if socket in ready:
                 try:  # never a blocking recv: the REQ socket discards uncorrelated replies
                     frames = socket.recv_multipart(zmq.NOBLOCK)
