@@ -431,6 +431,14 @@ def _ci(values: Sequence[float], digits: int = 2, scale: float = 1.0) -> str:
     return f" [{scale * low:.{digits}f}, {scale * high:.{digits}f}]"
 
 
+def _versus_faster(f: dict[str, Any]) -> str:
+    """The paired speed difference to the faster strong baseline (the smaller difference), with
+    its interval; "" for a baseline compared with nothing."""
+    versus = [f[k] for k in (f"vs_{b}" for b in STRONG) if k in f]
+    best = min(versus, key=lambda v: v["difference"]) if versus else None
+    return f"{best['difference']:+.2f}{_ci(best['ci'])}" if best else ""
+
+
 def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
     lines = [
         f"### {name}",
@@ -441,9 +449,7 @@ def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
     ]
     for spec in specs:
         f = figures[spec]
-        versus = [f[k] for k in (f"vs_{b}" for b in STRONG) if k in f]
-        best = min(versus, key=lambda v: v["difference"]) if versus else None
-        vs = f"{best['difference']:+.2f}{_ci(best['ci'])}" if best else ""
+        vs = _versus_faster(f)
         lines.append(
             f"| `{spec}` | {100 * f['arrivals']:.0f} %{_ci(f['arrivals_ci'], 0, 100)} "
             f"| {100 * f['collisions']:.0f} %{_ci(f['collisions_ci'], 0, 100)} "
@@ -470,9 +476,7 @@ def card_rows(spec: str, tables: Sequence[Path]) -> str:
             f = figures.get(spec)
             if f is None:
                 continue
-            versus = [f[k] for k in (f"vs_{b}" for b in STRONG) if k in f]
-            best = min(versus, key=lambda v: v["difference"]) if versus else None
-            vs = f"{best['difference']:+.2f}{_ci(best['ci'])}" if best else ""
+            vs = _versus_faster(f)
             lines.append(
                 f"| `{name}` | {f['trips']} | {100 * f['arrivals']:.0f} % "
                 f"| {100 * f['collisions']:.0f} % | {100 * f['red_lights']:.0f} % "
