@@ -138,6 +138,12 @@ VEHICLE_LENGTH = 5.0
 """m: the ego's length where a gap is measured from positions (the built-in egos' length)."""
 SAME_LINE = 1.0
 """m: a traffic light this close to the end of the ego's lane is the one at its next junction."""
+FURTHER_LOOK = 20.0
+"""m: a junction beyond the next is looked at within this, plus the ego's braking distance."""
+FURTHER_DECELERATION = 3.0
+"""m/s²: the braking that distance assumes."""
+MAX_FURTHER_LINKS = 4
+"""Bound on the junctions beyond the next looked at."""
 INSERTION_WALL_S = 120.0
 """Longest wall-clock time (s) a reset waits for an ego to enter (beside the simulated
 ``insertion_timeout``): within the client's reset deadline on any network."""
@@ -1240,6 +1246,8 @@ class SumoBackend(Backend):
             at_light = abs(signal.distance - to_junction) <= SAME_LINE
             yellow_left = signal.switch if at_light else math.inf
             line = stop_line(links, to_junction, speed, state.speed_limit, foes, yellow_left)
+            if line >= ROAD_RANGE and not episode.one_way:
+                line = self._stop_further(episode, ego_id, links, to_junction, speed)
             road = replace(road, stop_line=line)
         if road is None:  # on a junction
             last = ego.last
@@ -1247,6 +1255,8 @@ class SumoBackend(Backend):
             road = carried(last.road if last is not None else None, driven, lane, lane_count)
             if not episode.one_way:  # where it may wait inside for foes (turning across them)
                 line = self._stop_within(episode, ego, lane_id, lane_position)
+                if line >= ROAD_RANGE:
+                    line = self._stop_after_junction(episode, ego_id, lane_id, lane_position)
                 road = replace(road, stop_line=line)
         if episode.signals is not None:
             road = replace(
@@ -1337,6 +1347,50 @@ class SumoBackend(Backend):
         limit = self._api.lane.getMaxSpeed(lane_id)
         return stop_line(links, to_junction, speed, limit, foes)
 
+    def _stop_further(
+        self, episode: _Episode, ego_id: str, links: Any, to_junction: float, speed: float
+    ) -> float:
+        """Where the ego must stop for a junction beyond the next one, its link closed (red,
+        giving way to foes too close), while that junction is within `FURTHER_LOOK` of the
+        ego (the distance it needs to stop, and more): at the end of the lane before it. A
+        lane between two junctions may be a metre long (netconvert's joined clusters): a
+        driver that looked at the next junction only would be inside the first when the
+        second's foes came into view (DRT: a left turn into a priority road, 1 m after
+        another junction, ended in a collision). ROAD_RANGE where nothing closes the way."""
+        distance = to_junction
+        look = FURTHER_LOOK + speed * speed / (2.0 * FURTHER_DECELERATION)
+        for index in range(min(len(links) - 1, MAX_FURTHER_LINKS)):
+            lane = str(links[index][0])
+            distance += float(links[index][7]) + self._lane_length(lane)
+            if distance > look:
+                break
+            onward = links[index + 1 :]
+            foes = self._priority_foes(episode, ego_id, lane, onward, distance)
+            limit = self._api.lane.getMaxSpeed(lane)
+            if stop_line(onward, distance, speed, limit, foes) < ROAD_RANGE:
+                return distance
+        return ROAD_RANGE
+
+    def _stop_after_junction(
+        self, episode: _Episode, ego_id: str, lane_id: str, lane_position: float
+    ) -> float:
+        """On a junction's lane: where the ego must stop for the next junction when its link
+        is closed and it lies within `FURTHER_LOOK` (`_stop_further`): at the end of the lane
+        between them. ROAD_RANGE otherwise."""
+        links = self._api.vehicle.getNextLinks(ego_id)
+        out = self._api.lane.getLinks(lane_id)
+        if not links or not out or str(out[0][4]).startswith(":"):
+            return ROAD_RANGE  # the end of the route, or a waiting point inside (judged there)
+        between = str(out[0][0])
+        distance = self._lane_length(lane_id) - lane_position + self._lane_length(between)
+        speed = self._api.vehicle.getSpeed(ego_id)
+        if distance > FURTHER_LOOK + speed * speed / (2.0 * FURTHER_DECELERATION):
+            return ROAD_RANGE
+        foes = self._priority_foes(episode, ego_id, between, links, distance)
+        limit = self._api.lane.getMaxSpeed(between)
+        closed = stop_line(links, distance, speed, limit, foes) < ROAD_RANGE
+        return distance if closed else ROAD_RANGE
+
     def _priority_foes(
         self, episode: _Episode, ego_id: str, from_lane: str, links: Any, to_junction: float
     ) -> tuple[Foe, ...]:
@@ -1371,7 +1425,7 @@ class SumoBackend(Backend):
             found = foes.of(from_lane, link[0], ego_exit)
         speed = self._api.vehicle.getSpeed(ego_id)
         if to_junction <= max(BLOCKING_LOOK, speed * BLOCKING_TIME) and link[4]:
-            found += foes.inside(link[4], ego_exit)
+            found += foes.inside(from_lane, link[4], ego_exit)
         return found
 
     def _leader_beyond(

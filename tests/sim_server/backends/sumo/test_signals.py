@@ -46,49 +46,71 @@ SMALL_CITY: dict[str, OptionValue] = {
 Act = Callable[[Observation], tuple[float, int]]
 
 
-def write_crossing(folder: Path) -> Path:
+def write_crossing(folder: Path, junction_before: float = 0.0) -> Path:
     """A side street crossing a busy main road (600 veh/h each way) at a junction where it
-    gives way; the ego's route ``across`` crosses. Returns the .sumocfg."""
-    (folder / "x.nod.xml").write_text(
+    gives way; the ego's route ``across`` crosses. With `junction_before` (m), the side street
+    meets a lane of its own there, where it has priority, that far before the main road (the
+    edge between the two junctions a few metres long, as in netconvert's joined clusters).
+    Returns the .sumocfg."""
+    name = "y" if junction_before else "x"
+    before = junction_before > 0.0
+    side = (
+        f'<node id="k" x="300" y="{-junction_before}" type="priority"/>'
+        f'<node id="q" x="100" y="{-junction_before}"/>'
+        if before
+        else ""
+    )
+    (folder / f"{name}.nod.xml").write_text(
         '<nodes><node id="w" x="0" y="0"/><node id="e" x="600" y="0"/>'
-        '<node id="j" x="300" y="0" type="priority"/>'
+        f'<node id="j" x="300" y="0" type="priority"/>{side}'
         '<node id="s" x="300" y="-200"/><node id="n" x="300" y="200"/></nodes>\n'
     )
-    (folder / "x.edg.xml").write_text(
+    approach = (
+        '<edge id="sj" from="s" to="k" numLanes="1" speed="14" priority="2"/>'
+        '<edge id="qk" from="q" to="k" numLanes="1" speed="14" priority="1"/>'
+        '<edge id="kj" from="k" to="j" numLanes="1" speed="14" priority="2"/>'
+        if before
+        else '<edge id="sj" from="s" to="j" numLanes="1" speed="14" priority="1"/>'
+    )
+    (folder / f"{name}.edg.xml").write_text(
         "<edges>"
         '<edge id="we" from="w" to="j" numLanes="1" speed="14" priority="3"/>'
         '<edge id="je" from="j" to="e" numLanes="1" speed="14" priority="3"/>'
         '<edge id="ew" from="e" to="j" numLanes="1" speed="14" priority="3"/>'
         '<edge id="jw" from="j" to="w" numLanes="1" speed="14" priority="3"/>'
-        '<edge id="sj" from="s" to="j" numLanes="1" speed="14" priority="1"/>'
+        f"{approach}"
         '<edge id="jn" from="j" to="n" numLanes="1" speed="14" priority="1"/>'
         "</edges>\n"
     )
     subprocess.run(
-        [find_netconvert(), "--node-files", str(folder / "x.nod.xml"),
-         "--edge-files", str(folder / "x.edg.xml"), "--output-file", str(folder / "x.net.xml"),
-         "--no-turnarounds", "true"],
+        [find_netconvert(), "--node-files", str(folder / f"{name}.nod.xml"),
+         "--edge-files", str(folder / f"{name}.edg.xml"),
+         "--output-file", str(folder / f"{name}.net.xml"), "--no-turnarounds", "true"],
         check=True, capture_output=True, timeout=60,
     )  # fmt: skip
-    (folder / "x.rou.xml").write_text(
+    across = "sj kj jn" if before else "sj jn"
+    (folder / f"{name}.rou.xml").write_text(
         '<routes><route id="east" edges="we je"/><route id="west" edges="ew jw"/>'
-        '<route id="across" edges="sj jn"/>'
+        f'<route id="across" edges="{across}"/>'
         '<flow id="e" route="east" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
         '<flow id="w" route="west" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
         "</routes>\n"
     )
-    config = folder / "x.sumocfg"
+    config = folder / f"{name}.sumocfg"
     config.write_text(
-        '<configuration><input><net-file value="x.net.xml"/><route-files value="x.rou.xml"/>'
-        '</input><time><step-length value="0.1"/></time></configuration>\n'
+        f'<configuration><input><net-file value="{name}.net.xml"/>'
+        f'<route-files value="{name}.rou.xml"/></input>'
+        '<time><step-length value="0.1"/></time></configuration>\n'
     )
     return config
 
 
 @pytest.fixture(scope="module")
 def backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
-    crossing = CustomScenario("crossing", write_crossing(tmp_path_factory.mktemp("x")), "across")
-    sumo = SumoBackend(cache_dir=tmp_path_factory.mktemp("city"), custom=(crossing,))
+    folder = tmp_path_factory.mktemp("x")
+    crossing = CustomScenario("crossing", write_crossing(folder), "across")
+    after = CustomScenario("crossing_after", write_crossing(folder, junction_before=14.0), "across")
+    sumo = SumoBackend(cache_dir=tmp_path_factory.mktemp("city"), custom=(crossing, after))
     yield sumo
     sumo.close()
 
@@ -196,6 +218,24 @@ def test_a_collision_inside_a_junction_is_named_so(backend: SumoBackend) -> None
         while not (obs.terminated or obs.truncated):
             obs = backend.step(obs.seq + 1, *driver.act(obs))
         assert obs.reason == EndReason.END_OF_ROAD and obs.events.collision_type == ""
+
+
+def test_idm_mobil_gives_way_at_a_junction_a_few_metres_after_another(
+    backend: SumoBackend,
+) -> None:
+    """The side street has priority at a junction 3 m before the main road, where it gives
+    way: IDM + MOBIL looks beyond the first junction and waits before it while the main road's
+    traffic approaches (looking at the next junction only, it drove into that traffic on 5
+    of these 10 seeds)."""
+    info = {s.name: s for s in backend.scenarios()}["crossing_after"]
+    ends = []
+    for seed in range(10):
+        obs = backend.reset("crossing_after", seed, dict(info.options))
+        driver = IDMMobilDriver()
+        while not (obs.terminated or obs.truncated):
+            obs = backend.step(obs.seq + 1, *driver.act(obs))
+        ends.append(obs.reason)
+    assert ends == [EndReason.END_OF_ROAD] * 10, ends
 
 
 def test_the_city_is_drawn_from_the_seed(backend: SumoBackend, tmp_path: Path) -> None:
