@@ -12,7 +12,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Literal
 
-from protocol.messages import AccelerationLimit, EndReason, LaneChangeRefusal, Observation
+from protocol.messages import (
+    ROAD_RANGE,
+    AccelerationLimit,
+    EndReason,
+    LaneChangeRefusal,
+    Observation,
+)
 from sim_server.backends.options import EpisodeOptions
 
 LANE_CHANGE_TIMEOUT_S = 5.0
@@ -101,8 +107,9 @@ class EndRule:
     for ``lane_end_patience`` seconds: a merge not made, an exit missed); an unreasonable stop
     (slower than ``stop_speed`` for ``stop_patience`` seconds, with no leader or one more than
     ``stop_gap`` ahead and faster, where the road does not make the ego wait: not within
-    ``stop_gap`` of a stop line, `Road.stop_line`, nor within `GAP_WAIT_DISTANCE` per lane to
-    cross of the end of a lane it must leave, waiting for a gap; a stop that began so has
+    ``stop_gap`` of a stop line, `Road.stop_line`, or of a junction where it gives way, nor
+    within `GAP_WAIT_DISTANCE` per lane to cross of the end of a lane it must leave, waiting
+    for a gap; a stop that began so has
     ``lane_end_patience`` seconds once the wait is over: a driver may wait for a longer gap than
     the simulator's); a stand of ``jam_patience`` seconds, whatever holds the ego (a jam that
     does not clear); ``max_episode_time`` seconds after the ego's entry (the only truncation).
@@ -146,8 +153,10 @@ class EndRule:
         """Simulation time at which the client took over the ego."""
         return self._entry_time
 
-    def check(self, obs: Observation) -> EndReason | None:
-        """The reason the episode ends with `obs`, or None while it goes on."""
+    def check(self, obs: Observation, give_way: float = ROAD_RANGE) -> EndReason | None:
+        """The reason the episode ends with `obs`, or None while it goes on; `give_way`: m to
+        the next junction where the ego has no priority, where the simulator knows it (a driver
+        may wait there for a gap longer than `Road.stop_line` judges it needs)."""
         if obs.events.collision:
             return EndReason.COLLISION
         if obs.events.end_of_road:
@@ -159,7 +168,8 @@ class EndRule:
             if standing >= self._lane_end_patience:
                 return EndReason.LANE_END
             self.stopped_since = None  # waiting there for a gap is no unreasonable stop
-        elif self._stopped(obs):
+            self.stopped_at_line = True  # nor, for a while, once the gap is taken
+        elif self._stopped(obs, give_way):
             return EndReason.STOPPED
         if self._jammed(obs):
             return EndReason.JAMMED
@@ -169,21 +179,27 @@ class EndRule:
 
     def _standing_at_lane_end(self, obs: Observation) -> float | None:
         """Seconds the ego has stood (slower than ``stop_speed``) within ``stop_gap`` of the
-        end of its lane, or None when it does not."""
+        end of its lane, or None when it does not (or a stop line within ``stop_gap`` holds
+        it: a lane that ends a few metres beyond a red light, São Paulo's export)."""
         road = obs.road
-        if road is None or road.lane_end > self._stop_gap or obs.ego.speed >= self._stop_speed:
+        if (
+            road is None
+            or road.lane_end > self._stop_gap
+            or obs.ego.speed >= self._stop_speed
+            or road.stop_line <= self._stop_gap  # a red light or a junction holds it there
+        ):
             self.at_lane_end_since = None
             return None
         if self.at_lane_end_since is None:
             self.at_lane_end_since = obs.time
         return obs.time - self.at_lane_end_since
 
-    def _stopped(self, obs: Observation) -> bool:
+    def _stopped(self, obs: Observation, give_way: float) -> bool:
         leader = obs.neighbours.leader
         speed = obs.ego.speed
         if speed >= self._stop_speed:
             self.stopped_at_line = False
-        elif self._made_to_wait(obs):
+        elif self._made_to_wait(obs) or give_way <= self._stop_gap:
             self.stopped_at_line = True  # waiting for the way to open, or for a gap
             self.stopped_since = None
             return False

@@ -904,7 +904,7 @@ class SumoBackend(Backend):
         if obs is None:  # gone without arriving
             lost = self._arrival_observation(episode, ego, seq, events, action, traffic)
             return ended(lost, EndReason.EGO_LOST)
-        reason = ego.end.check(obs)
+        reason = ego.end.check(obs, ego.give_way)
         return obs if reason is None else ended(obs, reason)
 
     def _observe_if_present(
@@ -1246,10 +1246,12 @@ class SumoBackend(Backend):
             at_light = abs(signal.distance - to_junction) <= SAME_LINE
             yellow_left = signal.switch if at_light else math.inf
             line = stop_line(links, to_junction, speed, state.speed_limit, foes, yellow_left)
+            ego.give_way = ROAD_RANGE if not links or links[0][1] else max(to_junction, 0.0)
             if line >= ROAD_RANGE and not episode.one_way:
                 line = self._stop_further(episode, ego_id, links, to_junction, speed)
             road = replace(road, stop_line=line)
         if road is None:  # on a junction
+            ego.give_way = ROAD_RANGE
             last = ego.last
             driven = position - last.ego.position if last is not None else 0.0
             road = carried(last.road if last is not None else None, driven, lane, lane_count)

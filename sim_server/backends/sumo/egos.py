@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from protocol.messages import (
+    ROAD_RANGE,
     AppliedAction,
     CollisionType,
     EndReason,
@@ -67,6 +68,9 @@ class EgoState:
     began)."""
     red_lights: RedLightWatch = field(default_factory=RedLightWatch)
     """Whether it crosses a red stop line (networks with traffic lights only)."""
+    give_way: float = ROAD_RANGE
+    """m to the next junction where it has no priority (gives way, or a permissive green) at
+    its latest observation; ROAD_RANGE where it has priority, or none is ahead."""
 
 
 class Drive:

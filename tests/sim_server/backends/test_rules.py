@@ -340,6 +340,47 @@ def test_waiting_for_a_gap_to_the_lane_the_route_needs_is_no_unreasonable_stop()
     assert at_lane_end(EndRule(OPTIONS, ENTRY), [0.0] * 21, too_far)[20] is EndReason.STOPPED
 
 
+def test_waiting_at_a_junction_that_gives_way_is_no_unreasonable_stop() -> None:
+    """A driver may wait for a longer gap than `Road.stop_line` judges it needs (SUMO's own
+    driver, at a minor link on the São Paulo export): within ``stop_gap`` of a junction where
+    the simulator says it gives way, a stop is a wait; 100 m before one it is not."""
+    open_road = Road(ROAD_RANGE, 0, 0.0, 0.0)
+    times = tenths(ENTRY + 0.9, 40)
+    rule = EndRule(OPTIONS, ENTRY)
+    found = [rule.check(replace(observation(t, 0.0), road=open_road), 1.0) for t in times]
+    assert found == [None] * 40
+    rule = EndRule(OPTIONS, ENTRY)
+    found = [rule.check(replace(observation(t, 0.0), road=open_road), 100.0) for t in times]
+    assert found[20] is EndReason.STOPPED
+
+
+def test_a_stand_at_a_lane_end_has_the_lane_ends_patience_once_the_lane_is_left() -> None:
+    """SUMO's own driver stands at the end of a short lane until a gap opens, changes lanes
+    standing, then waits a moment more: the stop began at the lane end, so it has
+    ``lane_end_patience`` (before: 2 s, and ``stopped``)."""
+    rule = EndRule(replace(OPTIONS, lane_end_patience=5.0), ENTRY)
+    left = Road(ROAD_RANGE, 0, 0.0, 0.0)
+    times = tenths(ENTRY + 0.9, 60)
+    roads = [MERGING] * 10 + [left] * 50
+    found = [
+        rule.check(replace(observation(t, 0.0), road=road))
+        for t, road in zip(times, roads, strict=True)
+    ]
+    assert found == [None] * 60  # 5 s after it left the lane: not yet 5 s
+
+
+def test_a_red_light_before_a_lane_end_holds_the_ego_without_a_lane_end_verdict() -> None:
+    """A lane that ends 10 m beyond a red light (a short edge whose lanes must be crossed,
+    São Paulo's export): standing at the light is waiting for it, not a merge not made."""
+    red_before_the_end = replace(MERGING, lane_end=10.8, stop_line=1.0)
+    found = at_lane_end(EndRule(replace(OPTIONS, lane_end_patience=3.0), ENTRY), [0.0] * 60,
+                        red_before_the_end)  # fmt: skip
+    assert found == [None] * 60
+    green = replace(red_before_the_end, stop_line=ROAD_RANGE)
+    found = at_lane_end(EndRule(replace(OPTIONS, lane_end_patience=3.0), ENTRY), [0.0] * 31, green)
+    assert found[30] is EndReason.LANE_END
+
+
 def test_standing_for_the_jam_patience_ends_as_jammed_whatever_holds_the_ego() -> None:
     rule = EndRule(replace(OPTIONS, jam_patience=3.0, max_episode_time=100.0), ENTRY)
     queue = Neighbour(True, 4.0, 0.0, 0.0, "stopped ahead")
