@@ -10,7 +10,9 @@ result on them), through real ``sim-server`` processes, and prints per map and d
   IDM + MOBIL and SUMO's own driver on the same trips (a t-interval of the differences);
 * travel time of the trips that arrived (s);
 * shares of time headways under 1 s and of jerk samples above 5.6 m/s³, and the share of steps
-  the safety layer drove (pooled over the trips; bootstrap intervals over trips).
+  the safety layer drove (pooled over the trips; bootstrap intervals over trips);
+* lane changes started by the driver, and the share of them that are its own: IDM + MOBIL,
+  asked afresh on the same observation, would not have made that change (bootstrap interval).
 
 Maps: the built-in scenarios (``cflc``, ``merge``, ``exit``, ``lanedrop``, ``urban``; ``cf`` on
 request), networks SUMO ships with eclipse-sumo (``sumo:A10KW``, a motorway interchange from
@@ -43,7 +45,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from agent_client.drivers.episode import run_episode
+from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.drivers.spec import load_driver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import ServerError, UsageError
@@ -285,12 +288,22 @@ def drive_trip(env: RemoteEnv, spec: str, seed: int) -> EpisodeSummary:
     rebuilds its simulation at the next reset) is counted as not arrived, its speed that of the
     steps it drove, and the table goes on."""
     speeds: list[float] = []
+    own = [0]
+    driver = load_driver(spec)
 
-    def record(before: Observation, action: object, reward: float, after: Observation) -> None:
+    def record(
+        before: Observation, action: tuple[float, int], reward: float, after: Observation
+    ) -> None:
         speeds.append(after.ego.speed)
+        override = getattr(driver, "override", None)
+        layer_changed = override is not None and override.lane_change
+        if after.events.lane_change_started and action[1] and not layer_changed:
+            # IDM + MOBIL asked afresh (its next decision due now) on the same observation
+            own[0] += IDMMobilDriver().act(before)[1] != action[1]
 
     try:
-        return episode_summary(run_episode(env, load_driver(spec), seed, on_step=record))
+        summary = episode_summary(run_episode(env, driver, seed, on_step=record))
+        return replace(summary, own_lane_changes=own[0])
     except ServerError as exc:
         if exc.code != ErrorCode.SIMULATOR_ERROR:
             raise
@@ -362,6 +375,8 @@ def figures_of(episodes: dict[str, list[EpisodeSummary]], specs: Sequence[str]) 
             [r.jerk_share_above_limit * r.steps for r in runs], [r.steps for r in runs]
         )
         layer, layer_ci = pooled_share([r.safety_steps for r in runs], [r.steps for r in runs])
+        changes = [r.lane_changes_started - r.safety_lane_changes for r in runs]
+        own, own_ci = pooled_share([r.own_lane_changes or 0 for r in runs], changes)
         table[spec] = {
             "trips": n,
             "arrivals": len(arrived) / n,
@@ -381,6 +396,9 @@ def figures_of(episodes: dict[str, list[EpisodeSummary]], specs: Sequence[str]) 
             "jerk_above_limit_ci": jerk_ci,
             "safety_layer": layer,
             "safety_layer_ci": layer_ci,
+            "lane_changes": sum(changes),
+            "own_lane_changes": own,
+            "own_lane_changes_ci": own_ci,
             "ends": {
                 reason: sum(r.reason == reason for r in runs)
                 for reason in sorted({r.reason for r in runs})
@@ -444,12 +462,18 @@ def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
         f"### {name}",
         "",
         "| driver | arrivals | collisions | red lights | speed, m/s | vs the faster baseline, m/s "
-        "| travel time, s | headway < 1 s | jerk > 5.6 | safety layer |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| travel time, s | headway < 1 s | jerk > 5.6 | safety layer | lane changes: own |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for spec in specs:
         f = figures[spec]
         vs = _versus_faster(f)
+        own = (
+            f"{f['lane_changes']}: {100 * f['own_lane_changes']:.0f} %"
+            f"{_ci(f['own_lane_changes_ci'], 0, 100)}"
+            if f.get("lane_changes")
+            else "0"
+        )
         lines.append(
             f"| `{spec}` | {100 * f['arrivals']:.0f} %{_ci(f['arrivals_ci'], 0, 100)} "
             f"| {100 * f['collisions']:.0f} %{_ci(f['collisions_ci'], 0, 100)} "
@@ -458,7 +482,7 @@ def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
             f"| {f['travel_time']:.0f}{_ci(f['travel_time_ci'], 0)} "
             f"| {100 * f['headway_below_1s']:.1f} %{_ci(f['headway_below_1s_ci'], 1, 100)} "
             f"| {100 * f['jerk_above_limit']:.2f} %{_ci(f['jerk_above_limit_ci'], 2, 100)} "
-            f"| {100 * f['safety_layer']:.2f} %{_ci(f['safety_layer_ci'], 2, 100)} |"
+            f"| {100 * f['safety_layer']:.2f} %{_ci(f['safety_layer_ci'], 2, 100)} | {own} |"
         )
     return "\n".join(lines) + "\n"
 

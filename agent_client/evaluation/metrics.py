@@ -158,6 +158,10 @@ class EpisodeSummary:
     safety_rules: str = ""
     """The layer's decisions by rule, ``collision:N stop_line:N lane_end:N standstill:N`` ("":
     none)."""
+    own_lane_changes: int | None = None
+    """Lane changes started (the driver's, not the safety layer's) that IDM + MOBIL, asked on
+    the same observation, would not have made: the driver's own decisions (None: not
+    measured; `benchmarks/table.py` measures it)."""
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)

@@ -158,3 +158,6 @@ def test_the_table_on_a_small_grid(tmp_path: Path, scenario_cache: Path) -> None
     assert row["speed_ci"][0] <= row["speed"] <= row["speed_ci"][1]
     assert out.with_suffix(".png").stat().st_size > 0
     assert "cflc" in done.stdout and "idm+mobil" in done.stdout
+    # IDM + MOBIL's lane changes are MOBIL's own decisions: none counted as the driver's own
+    assert row["lane_changes"] > 0 and row["own_lane_changes"] == 0.0
+    assert saved["results"]["cflc"]["idm"]["lane_changes"] == 0
