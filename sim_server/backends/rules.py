@@ -107,12 +107,13 @@ class EndRule:
     for ``lane_end_patience`` seconds: a merge not made, an exit missed); an unreasonable stop
     (slower than ``stop_speed`` for ``stop_patience`` seconds, with no leader or one more than
     ``stop_gap`` ahead and faster, where the road does not make the ego wait: not within
-    ``stop_gap`` of a stop line, `Road.stop_line`, or of a junction where it gives way, nor
-    within `GAP_WAIT_DISTANCE` per lane to cross of the end of a lane it must leave, waiting
-    for a gap; a stop that began so has
-    ``lane_end_patience`` seconds once the wait is over: a driver may wait for a longer gap than
-    the simulator's); a stand of ``jam_patience`` seconds, whatever holds the ego (a jam that
-    does not clear); ``max_episode_time`` seconds after the ego's entry (the only truncation).
+    ``stop_gap`` of a stop line, `Road.stop_line`, nor within `GAP_WAIT_DISTANCE` per lane to
+    cross of the end of a lane it must leave, waiting for a gap, nor within ``stop_gap`` of a
+    junction where it gives way, whatever `Road.stop_line` says (a driver may wait longer than
+    the simulator's judgement: for a longer gap, for room beyond the junction); a stop that
+    began waiting has ``lane_end_patience`` seconds once the wait is over); a stand of
+    ``jam_patience`` seconds, whatever holds the ego (a jam that does not clear);
+    ``max_episode_time`` seconds after the ego's entry (the only truncation).
     """
 
     __slots__ = (
@@ -156,7 +157,7 @@ class EndRule:
     def check(self, obs: Observation, give_way: float = ROAD_RANGE) -> EndReason | None:
         """The reason the episode ends with `obs`, or None while it goes on; `give_way`: m to
         the next junction where the ego has no priority, where the simulator knows it (a driver
-        may wait there for a gap longer than `Road.stop_line` judges it needs)."""
+        may wait there longer than `Road.stop_line` judges it must: `jam_patience` bounds it)."""
         if obs.events.collision:
             return EndReason.COLLISION
         if obs.events.end_of_road:
@@ -200,7 +201,7 @@ class EndRule:
         if speed >= self._stop_speed:
             self.stopped_at_line = False
         elif self._made_to_wait(obs) or give_way <= self._stop_gap:
-            self.stopped_at_line = True  # waiting for the way to open, or for a gap
+            self.stopped_at_line = True  # waiting for the way to open, for a gap, at a junction
             self.stopped_since = None
             return False
         if speed < self._stop_speed and (

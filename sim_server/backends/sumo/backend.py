@@ -143,7 +143,7 @@ FURTHER_LOOK = 20.0
 FURTHER_DECELERATION = 3.0
 """m/s²: the braking that distance assumes."""
 MAX_FURTHER_LINKS = 4
-"""Bound on the junctions beyond the next looked at."""
+"""Bound on the junctions beyond the next looked at (and on a junction's lanes in a row)."""
 INSERTION_WALL_S = 120.0
 """Longest wall-clock time (s) a reset waits for an ego to enter (beside the simulated
 ``insertion_timeout``): within the client's reset deadline on any network."""
@@ -1259,6 +1259,7 @@ class SumoBackend(Backend):
                 line = self._stop_within(episode, ego, lane_id, lane_position)
                 if line >= ROAD_RANGE:
                     line = self._stop_after_junction(episode, ego_id, lane_id, lane_position)
+                line = min(line, self._standing_inside(episode, ego, lane_id, lane_position))
                 road = replace(road, stop_line=line)
         if episode.signals is not None:
             road = replace(
@@ -1354,23 +1355,29 @@ class SumoBackend(Backend):
     ) -> float:
         """Where the ego must stop for a junction beyond the next one, its link closed (red,
         giving way to foes too close), while that junction is within `FURTHER_LOOK` of the
-        ego (the distance it needs to stop, and more): at the end of the lane before it. A
-        lane between two junctions may be a metre long (netconvert's joined clusters): a
-        driver that looked at the next junction only would be inside the first when the
-        second's foes came into view (DRT: a left turn into a priority road, 1 m after
-        another junction, ended in a collision). ROAD_RANGE where nothing closes the way."""
-        distance = to_junction
+        ego (plus the distance it needs to stop): at the end of the lane before it, as SUMO's
+        own drivers stop, however short that lane (where it is shorter than the ego, the ego
+        stands partly in the junction before: stopping before that one, 10 m farther from the
+        conflict, it found no gap in a busy main road in 2 of 10 trips of the test's crossing
+        and stood until `jam_patience`). A lane between two junctions may be a metre long
+        (netconvert's joined clusters): a driver that looked at the next junction only would be
+        inside the first when the second's foes came into view (DRT: a left turn into a
+        priority road, 1 m after another junction, ended in a collision). ROAD_RANGE where
+        nothing closes the way."""
+        distance = to_junction  # to the entrance of the junction of links[index]
         look = FURTHER_LOOK + speed * speed / (2.0 * FURTHER_DECELERATION)
         for index in range(min(len(links) - 1, MAX_FURTHER_LINKS)):
             lane = str(links[index][0])
-            distance += float(links[index][7]) + self._lane_length(lane)
-            if distance > look:
+            between = self._lane_length(lane)
+            entrance = distance + self._inside_length(str(links[index][4])) + between
+            if entrance > look:
                 break
             onward = links[index + 1 :]
-            foes = self._priority_foes(episode, ego_id, lane, onward, distance)
+            foes = self._priority_foes(episode, ego_id, lane, onward, entrance)
             limit = self._api.lane.getMaxSpeed(lane)
-            if stop_line(onward, distance, speed, limit, foes) < ROAD_RANGE:
-                return distance
+            if stop_line(onward, entrance, speed, limit, foes) < ROAD_RANGE:
+                return entrance
+            distance = entrance
         return ROAD_RANGE
 
     def _stop_after_junction(
@@ -1381,10 +1388,11 @@ class SumoBackend(Backend):
         between them. ROAD_RANGE otherwise."""
         links = self._api.vehicle.getNextLinks(ego_id)
         out = self._api.lane.getLinks(lane_id)
-        if not links or not out or str(out[0][4]).startswith(":"):
-            return ROAD_RANGE  # the end of the route, or a waiting point inside (judged there)
+        if not links or not out:
+            return ROAD_RANGE  # the end of the route
         between = str(out[0][0])
-        distance = self._lane_length(lane_id) - lane_position + self._lane_length(between)
+        rest = self._inside_length(str(out[0][4]))  # beyond a waiting point inside
+        distance = self._lane_length(lane_id) - lane_position + rest + self._lane_length(between)
         speed = self._api.vehicle.getSpeed(ego_id)
         if distance > FURTHER_LOOK + speed * speed / (2.0 * FURTHER_DECELERATION):
             return ROAD_RANGE
@@ -1392,6 +1400,30 @@ class SumoBackend(Backend):
         limit = self._api.lane.getMaxSpeed(between)
         closed = stop_line(links, distance, speed, limit, foes) < ROAD_RANGE
         return distance if closed else ROAD_RANGE
+
+    def _standing_inside(
+        self, episode: _Episode, ego: EgoState, lane_id: str, lane_position: float
+    ) -> float:
+        """On a junction's lane: m to a vehicle of another of its lanes whose body is on the
+        ego's way ahead (`JunctionFoes.standing_ahead`); ROAD_RANGE where none is."""
+        if not ego.approach_lane:
+            return ROAD_RANGE
+        if episode.junction_foes is None:
+            episode.junction_foes = JunctionFoes(self._api)
+        ahead = episode.junction_foes.standing_ahead(ego.approach_lane, lane_id, lane_position)
+        return min(ahead, ROAD_RANGE)
+
+    def _inside_length(self, via: str) -> float:
+        """m through a junction from the start of its lane `via`: that lane and those after
+        a waiting point inside it (SUMO's internal junction); 0 for no junction lane."""
+        total, lane = 0.0, via
+        for _ in range(MAX_FURTHER_LINKS):
+            if not lane.startswith(":"):
+                break
+            total += self._lane_length(lane)
+            onward = self._api.lane.getLinks(lane)
+            lane = str(onward[0][4]) if onward else ""
+        return total
 
     def _priority_foes(
         self, episode: _Episode, ego_id: str, from_lane: str, links: Any, to_junction: float

@@ -15,6 +15,8 @@ Networks" (internal junctions, right of way).
 
 from __future__ import annotations
 
+import itertools
+import math
 from typing import Any
 
 from sim_server.backends.sumo.road import Foe
@@ -30,6 +32,14 @@ BLOCKING_LOOK = 30.0
 way, closes the way even to an ego with priority (it must not drive into a blocked junction)."""
 BLOCKING_TIME = 2.0
 """s: also from as far as the ego drives in this time."""
+STANDING_SPEED = 2.0
+"""m/s: slower than this, a vehicle inside a junction stands in the way of those it is on."""
+WAITING_CAR = 5.0
+"""m: the length of the car assumed standing at a waiting point."""
+CLEARANCE = 2.0
+"""m the ego stops short of a vehicle standing on its way inside a junction."""
+EGO_WIDTH = 1.8
+"""m: the ego's width (SUMO's passenger car)."""
 MAX_JUNCTION_LANES = 10_000
 """Bound on the lanes looked at to list one junction's inner lanes."""
 
@@ -41,7 +51,8 @@ class JunctionFoes:
     def __init__(self, api: Any) -> None:
         self._api = api
         self._lanes: dict[tuple[str, str], tuple[str, ...]] = {}
-        self._crossing: dict[str, tuple[str, ...]] = {}
+        self._crossing: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {}
+        self._shapes: dict[str, tuple[tuple[float, float], ...]] = {}
         self._waits: dict[str, bool] = {}
         self._lengths: dict[str, float] = {}
         self._foes_of: dict[str, tuple[str, ...]] = {}
@@ -94,32 +105,111 @@ class JunctionFoes:
     def inside(self, from_lane: str, via: str, ego_exit: float) -> tuple[Foe, ...]:
         """The vehicles inside the junction now on a lane that crosses or merges with the
         ego's junction lane `via` (taken from `from_lane`; whoever has priority: they are in
-        the way)."""
+        the way), or that names `via` as its foe without `via` naming it back and ends at a
+        waiting point on the ego's way (`_crossing_lanes`); and those on the other lanes
+        that name `via` whose body is on the ego's way now (`_on_the_way`)."""
         lane_api, vehicle = self._api.lane, self._api.vehicle
-        crossing = self._crossing.get(via)
-        if crossing is None:
-            crossing = self._crossing[via] = self._crossing_lanes(from_lane, via)
+        lanes = self._crossing.get(via)
+        if lanes is None:
+            lanes = self._crossing[via] = self._crossing_lanes(from_lane, via)
+        crossing, named_by = lanes
         found: list[Foe] = []
         for lane in crossing:
             for other in lane_api.getLastStepVehicleIDs(lane):
                 found.append(Foe(0.0, CROSSING_LENGTH, vehicle.getSpeed(other), ego_exit))
+        for lane in named_by:
+            for other in lane_api.getLastStepVehicleIDs(lane):
+                if self._on_the_way(other, via):
+                    found.append(Foe(0.0, CROSSING_LENGTH, vehicle.getSpeed(other), ego_exit))
         return tuple(found)
 
-    def _crossing_lanes(self, from_lane: str, via: str) -> tuple[str, ...]:
-        """The junction lanes that cross or merge with `via`: its own internal foes and the
-        lanes of its junction that name `via` among theirs. SUMO's relation is not always
-        symmetric (on netconvert's joined clusters a turn's lane may name a straight lane
-        that does not name it back), and a vehicle standing on such a lane, waiting inside
-        the junction for the straight stream, is in the way all the same (DRT, SUMO's game
-        network: the ego drove into one in 3 of 100 trips, SUMO's own driver in 2)."""
+    def standing_ahead(self, from_lane: str, lane: str, position: float) -> float:
+        """On the junction lane `lane` (entered from `from_lane`), `position` m along it: m
+        to the nearest point where another lane's vehicle, standing (slower than
+        `STANDING_SPEED`), has its body on the ego's way ahead
+        (`_on_the_way`), less `CLEARANCE`; `math.inf` where none is. A junction of a joined
+        cluster may be 35 m long, and a car that stopped at a waiting point placed on the
+        ego's way after the ego entered is met inside it (DRT)."""
+        lanes = self._crossing.get(lane)
+        if lanes is None:
+            lanes = self._crossing[lane] = self._crossing_lanes(from_lane, lane)
+        lane_api, vehicle = self._api.lane, self._api.vehicle
+        nearest = math.inf
+        for other_lane in lanes[0] + lanes[1]:
+            for other in lane_api.getLastStepVehicleIDs(other_lane):
+                if vehicle.getSpeed(other) >= STANDING_SPEED:
+                    continue  # crossing: it clears the way (right of way judged before)
+                along = self._along_the_way(other, lane)
+                if along is not None and along > position:
+                    nearest = min(nearest, along - position - CLEARANCE)
+        return max(nearest, 0.0)
+
+    def _crossing_lanes(self, from_lane: str, via: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """The junction lanes that cross or merge with `via` (its own internal foes), and
+        the lanes of its junction that name `via` among theirs though `via` does not name
+        them. SUMO's relation is not symmetric: a left turn's lane up to its waiting point
+        names the oncoming straight lane it waits for, which does not name it back, since a
+        car standing at the waiting point is clear of it; on netconvert's joined clusters
+        that waiting point may lie on the straight lane's way, and a car standing there is
+        in the way all the same (DRT, SUMO's game network: the ego drove into one in 3 of
+        100 trips, SUMO's own driver in 2)."""
         lane_api = self._api.lane
         crossing = set(self._internal_foes(via))
         edge = lane_api.getEdgeID(from_lane)
         junction = self._api.edge.getToJunction(edge)
-        for lane in self._junction_lanes(junction):
-            if lane != via and via in self._internal_foes(lane):
-                crossing.add(lane)
-        return tuple(sorted(crossing))
+        named_by = {
+            lane
+            for lane in self._junction_lanes(junction)
+            if lane != via and lane not in crossing and via in self._internal_foes(lane)
+        }
+        misplaced = {lane for lane in named_by if self._waits_on(lane, via)}
+        crossing |= misplaced
+        return tuple(sorted(crossing)), tuple(sorted(named_by - misplaced))
+
+    def _waits_on(self, lane: str, via: str) -> bool:
+        """Whether junction lane `lane` ends at a waiting point (`waits_inside`) where a car
+        standing (its front at the end, its middle `WAITING_CAR` / 2 behind) is on the way
+        of `via`: a waiting point netconvert placed on the way it waits for."""
+        if not self.waits_inside(lane):
+            return False
+        shape, way = self._shape(lane), self._shape(via)
+        length = _length_of(shape)
+        for back in (0.0, 0.5 * WAITING_CAR):
+            point = _point_at(shape, max(length - back, 0.0))
+            if _projection(point, way)[0] < EGO_WIDTH:
+                return True
+        return False
+
+    def _on_the_way(self, other: str, via: str) -> bool:
+        """Whether vehicle `other`'s body (its front, middle or rear) lies within the two
+        vehicles' half widths of the centre line of the junction lane `via`."""
+        return self._along_the_way(other, via) is not None
+
+    def _along_the_way(self, other: str, via: str) -> float | None:
+        """m along the junction lane `via` to the first point of vehicle `other`'s body (its
+        front, middle or rear) that lies within the two vehicles' half widths of its centre
+        line; None where none does."""
+        vehicle = self._api.vehicle
+        x, y = vehicle.getPosition(other)
+        heading = math.radians(vehicle.getAngle(other))
+        length = vehicle.getLength(other)
+        reach = 0.5 * (vehicle.getWidth(other) + EGO_WIDTH)
+        shape = self._shape(via)
+        found: float | None = None
+        for back in (0.0, 0.5 * length, length):
+            point = (x - back * math.sin(heading), y - back * math.cos(heading))
+            distance, along = _projection(point, shape)
+            if distance < reach and (found is None or along < found):
+                found = along
+        return found
+
+    def _shape(self, lane: str) -> tuple[tuple[float, float], ...]:
+        shape = self._shapes.get(lane)
+        if shape is None:
+            shape = self._shapes[lane] = tuple(
+                (float(x), float(y)) for x, y in self._api.lane.getShape(lane)
+            )
+        return shape
 
     def _internal_foes(self, lane: str) -> tuple[str, ...]:
         foes = self._foes_of.get(lane)
@@ -159,3 +249,40 @@ class JunctionFoes:
         if length is None:
             length = self._lengths[lane] = self._api.lane.getLength(lane)
         return length
+
+
+def _projection(
+    point: tuple[float, float], shape: tuple[tuple[float, float], ...]
+) -> tuple[float, float]:
+    """(m from `point` to the polyline `shape`, m along `shape` to its nearest point)."""
+    px, py = point
+    best, best_along, walked = math.inf, 0.0, 0.0
+    if len(shape) == 1:
+        return math.hypot(px - shape[0][0], py - shape[0][1]), 0.0
+    for (x1, y1), (x2, y2) in itertools.pairwise(shape):
+        dx, dy = x2 - x1, y2 - y1
+        squared = dx * dx + dy * dy
+        along = ((px - x1) * dx + (py - y1) * dy) / squared if squared else 0.0
+        t = max(0.0, min(1.0, along))
+        distance = math.hypot(px - x1 - t * dx, py - y1 - t * dy)
+        segment = math.sqrt(squared)
+        if distance < best:
+            best, best_along = distance, walked + t * segment
+        walked += segment
+    return best, best_along
+
+
+def _length_of(shape: tuple[tuple[float, float], ...]) -> float:
+    return sum(math.hypot(x2 - x1, y2 - y1) for (x1, y1), (x2, y2) in itertools.pairwise(shape))
+
+
+def _point_at(shape: tuple[tuple[float, float], ...], along: float) -> tuple[float, float]:
+    """The point `along` m along the polyline `shape` (its last point beyond its end)."""
+    walked = 0.0
+    for (x1, y1), (x2, y2) in itertools.pairwise(shape):
+        segment = math.hypot(x2 - x1, y2 - y1)
+        if segment > 0.0 and walked + segment >= along:
+            t = (along - walked) / segment
+            return (x1 + t * (x2 - x1), y1 + t * (y2 - y1))
+        walked += segment
+    return shape[-1]

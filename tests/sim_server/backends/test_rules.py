@@ -341,15 +341,17 @@ def test_waiting_for_a_gap_to_the_lane_the_route_needs_is_no_unreasonable_stop()
 
 
 def test_waiting_at_a_junction_that_gives_way_is_no_unreasonable_stop() -> None:
-    """A driver may wait for a longer gap than `Road.stop_line` judges it needs (SUMO's own
-    driver, at a minor link on the São Paulo export): within ``stop_gap`` of a junction where
-    the simulator says it gives way, a stop is a wait; 100 m before one it is not."""
+    """A driver may wait longer than `Road.stop_line` judges it must (SUMO's own driver, 30 s
+    at a minor link on the São Paulo export, a queue beyond it): within ``stop_gap`` of a
+    junction where the simulator says it gives way, a stop is a wait, bounded by
+    ``jam_patience``; 100 m before one it is not."""
     open_road = Road(ROAD_RANGE, 0, 0.0, 0.0)
-    times = tenths(ENTRY + 0.9, 40)
-    rule = EndRule(OPTIONS, ENTRY)
+    times = tenths(ENTRY + 0.9, 61)
+    rule = EndRule(replace(OPTIONS, jam_patience=6.0, max_episode_time=100.0), ENTRY)
     found = [rule.check(replace(observation(t, 0.0), road=open_road), 1.0) for t in times]
-    assert found == [None] * 40
+    assert found[:60] == [None] * 60 and found[60] is EndReason.JAMMED
     rule = EndRule(OPTIONS, ENTRY)
+    times = times[:40]
     found = [rule.check(replace(observation(t, 0.0), road=open_road), 100.0) for t in times]
     assert found[20] is EndReason.STOPPED
 

@@ -6,9 +6,12 @@ ego's lane does not name it back (SUMO's relation is not symmetric on joined clu
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
-from sim_server.backends.sumo.junctions import JunctionFoes
+import pytest
+
+from sim_server.backends.sumo.junctions import CLEARANCE, JunctionFoes
 
 
 class NoConnection(Exception):
@@ -27,6 +30,9 @@ class Lanes:
 
     def getInternalFoes(self, lane: str) -> list[str]:
         return self.internal_foes.get(lane, [])
+
+    def getShape(self, lane: str) -> list[tuple[float, float]]:
+        return [(0.0, 0.0), (20.0, 0.0)]  # every junction lane: along x, through the origin
 
     def getLinks(self, lane: str) -> list[tuple[object, ...]]:
         return self.links.get(lane, [])
@@ -54,15 +60,31 @@ class Junctions:
         return ["a", "c"]
 
 
+@dataclass
 class Vehicles:
+    positions: dict[str, tuple[float, float]] = field(default_factory=dict)
+    angles: dict[str, float] = field(default_factory=dict)
+
     def getSpeed(self, vehicle: str) -> float:
         return 0.0
+
+    def getPosition(self, vehicle: str) -> tuple[float, float]:
+        return self.positions[vehicle]
+
+    def getAngle(self, vehicle: str) -> float:
+        return self.angles.get(vehicle, 0.0)  # 0: heading north (+y), 90: east (+x)
+
+    def getLength(self, vehicle: str) -> float:
+        return 5.0
+
+    def getWidth(self, vehicle: str) -> float:
+        return 1.8
 
 
 @dataclass
 class Api:
     lane: Lanes = field(default_factory=Lanes)
-    vehicle: object = field(default_factory=Vehicles)
+    vehicle: Vehicles = field(default_factory=Vehicles)
     edge: Edges = field(default_factory=Edges)
     junction: Junctions = field(default_factory=Junctions)
 
@@ -76,7 +98,11 @@ def test_lanes_sumo_does_not_link_have_no_foes() -> None:
     assert api.lane.asked == [("a_0", "b_0")]
 
 
-def test_a_vehicle_standing_on_a_lane_that_names_the_egos_as_foe_is_in_its_way() -> None:
+def test_a_vehicle_standing_on_a_lane_that_names_the_egos_as_foe_is_in_its_way_if_on_it() -> None:
+    """The turn's lane names the ego's straight lane as its foe, not the other way round (a
+    left turn up to its waiting point, SUMO's design): a car standing there is in the ego's
+    way only where its body is on the ego's way (a waiting point misplaced on a joined
+    cluster), not where it waits clear of it."""
     api = Api()
     api.lane.links = {
         "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 10.0)],
@@ -85,8 +111,34 @@ def test_a_vehicle_standing_on_a_lane_that_names_the_egos_as_foe_is_in_its_way()
         ":j_1_0": [("d_0", "", "1", "1", "", "G", "l", 0.0)],
     }
     api.lane.internal_foes = {":j_1_0": [":j_0_0"]}  # the turn names the straight lane only
-    api.lane.vehicles = {":j_1_0": ["turning"]}  # standing inside, across the ego's way
+    api.lane.vehicles = {":j_1_0": ["turning"]}
+    api.vehicle.positions = {"turning": (8.0, 1.5)}  # its front 1.5 m from the ego's way
     (foe,) = JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)
     assert foe.distance == 0.0 and foe.speed == 0.0 and foe.ego_exit_distance == 12.0
+    api.vehicle.positions = {"turning": (8.0, 3.5)}  # its front past, its middle across it
+    assert len(JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)) == 1
+    api.vehicle.positions = {"turning": (8.0, 2.7)}  # waiting clear of it (2.7 m: SUMO's own)
+    api.vehicle.angles = {"turning": 90.0}  # beside it, heading the same way
+    assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
+    api.vehicle.positions = {"turning": (8.0, 1.5)}
+    assert len(JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)) == 1
     api.lane.vehicles = {}
     assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
+
+
+def test_inside_a_junction_the_ego_stops_short_of_a_vehicle_standing_on_its_way() -> None:
+    api = Api()
+    api.lane.links = {
+        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 20.0)],
+        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", "g", "l", 10.0)],
+        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
+        ":j_1_0": [("d_0", "", "1", "1", "", "G", "l", 0.0)],
+    }
+    api.lane.internal_foes = {":j_1_0": [":j_0_0"]}
+    api.lane.vehicles = {":j_1_0": ["turning"]}
+    api.vehicle.positions = {"turning": (14.0, 1.5)}  # heading north, its rear across the way
+    ahead = JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 4.0)
+    assert ahead == pytest.approx(14.0 - 4.0 - CLEARANCE)
+    assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 15.0) == math.inf  # passed it
+    api.vehicle.positions = {"turning": (14.0, 9.0)}  # clear of the way
+    assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 4.0) == math.inf
