@@ -469,9 +469,11 @@ def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
         f = figures[spec]
         vs = _versus_faster(f)
         own = (
-            f"{f['lane_changes']}: {100 * f['own_lane_changes']:.0f} %"
+            "n/a"  # SUMO changes its own driver's lanes: the bridge sees no request
+            if spec == "sumo" or "lane_changes" not in f
+            else f"{f['lane_changes']}: {100 * f['own_lane_changes']:.0f} %"
             f"{_ci(f['own_lane_changes_ci'], 0, 100)}"
-            if f.get("lane_changes")
+            if f["lane_changes"]
             else "0"
         )
         lines.append(
