@@ -156,8 +156,8 @@ class EpisodeSummary:
     safety_lane_changes: int = 0
     """Lane changes the safety layer decided that started."""
     safety_rules: str = ""
-    """The layer's decisions by rule, ``collision:N stop_line:N lane_end:N standstill:N`` ("":
-    none)."""
+    """The layer's decisions by rule, ``collision:N stop_line:N yellow:N lane_end:N
+    standstill:N`` ("": none)."""
     own_lane_changes: int | None = None
     """Lane changes started (the driver's, not the safety layer's) that IDM + MOBIL, asked on
     the same observation, would not have made: the driver's own decisions (None: not

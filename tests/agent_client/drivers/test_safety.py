@@ -66,6 +66,42 @@ def test_a_red_light_it_can_still_stop_for_is_not_run() -> None:
     assert LAYER.apply(observation(20.0, road=too_late), 2.0, 0)[2] == NONE  # braking cannot help
 
 
+def crossing_time(speed: float, line: float, left: float, brake: float, layer: bool) -> float:
+    """Seconds until the ego's front is across a yellow light's line `line` m ahead (turning
+    red in `left` s), the policy braking at `brake` m/s² throughout, through the layer or
+    not; inf where it stops first."""
+    t, dt = 0.0, 0.1
+    for _ in range(200):
+        if line <= 0.0:
+            return t
+        if speed <= 0.0:
+            return math.inf
+        road = Road(ROAD_RANGE, 0, 0.0, 0.0, signal_distance=line, signal_state="yellow",
+                    signal_switch=max(left - t, 0.0))  # fmt: skip
+        a = LAYER.apply(observation(speed, road=road), brake, 0)[0] if layer else brake
+        v_next = max(speed + a * dt, 0.0)
+        line -= 0.5 * (speed + v_next) * dt
+        speed, t = v_next, t + dt
+    return math.inf
+
+
+def test_a_yellow_light_braked_for_too_late_is_cleared_before_it_turns_red() -> None:
+    """20 m/s, a yellow light 29 m ahead turning red in 1.9 s (the shipped roads policy on an
+    OSM city): it cannot stop (6.9 m/s² needed), and braking at 5.5 m/s² it reached the line
+    after the light had turned red. The layer lets it brake while it still makes the line in
+    time at the speed it has, then holds it there; braking that can stop stays the policy's."""
+    assert crossing_time(20.05, 29.0, 1.9, -5.5, layer=False) > 1.9  # red when it crosses
+    assert crossing_time(20.05, 29.0, 1.9, -5.5, layer=True) <= 1.9 + 1e-6  # 1 m past by then
+    yellow = Road(ROAD_RANGE, 0, 0.0, 0.0, signal_distance=29.0, signal_state="yellow",
+                  signal_switch=1.9)  # fmt: skip
+    assert LAYER.apply(observation(20.05, road=yellow), -5.5, 0)[2] == NONE  # still makes it
+    late = replace(yellow, signal_distance=29.0 - 0.1 * 20.0, signal_switch=1.4)
+    acceleration, _, override = LAYER.apply(observation(19.0, road=late), -5.5, 0)
+    assert override.rule == "yellow" and acceleration > -5.5
+    early = replace(yellow, signal_distance=45.0, signal_switch=2.8)  # 22 m/s: it can stop
+    assert LAYER.apply(observation(22.0, road=early), -5.0, 0)[2] == NONE
+
+
 def test_a_lane_end_about_to_be_missed_gets_the_change_the_route_needs() -> None:
     merging = Road(30.0, 1, ROAD_RANGE, 0.0)
     obs = observation(15.0, road=merging, lane=0, lanes=3)
