@@ -144,6 +144,9 @@ FURTHER_DECELERATION = 3.0
 """m/s²: the braking that distance assumes."""
 MAX_FURTHER_LINKS = 4
 """Bound on the junctions beyond the next looked at (and on a junction's lanes in a row)."""
+PARTIAL_LOOK = 20.0
+"""m before the end of its lane within which the ego looks for a vehicle that has entered the
+junction with its rear still on the lane."""
 INSERTION_WALL_S = 120.0
 """Longest wall-clock time (s) a reset waits for an ego to enter (beside the simulated
 ``insertion_timeout``): within the client's reset deadline on any network."""
@@ -1277,6 +1280,12 @@ class SumoBackend(Backend):
         leader = vehicle.getLeader(ego_id, sensed)
         if not leader or not leader[0]:
             leader = self._leader_beyond(onward, links, lane_id, lane_position, ego_min_gap)
+        if road is not None and not lane_id.startswith(":"):
+            to_end = self._lane_length(lane_id) - lane_position
+            if to_end <= PARTIAL_LOOK:
+                partial = self._rear_on_lane(lane_id, to_end, ego_min_gap)
+                if partial is not None and (not leader or not leader[0] or partial[1] < leader[1]):
+                    leader = partial
         follower = vehicle.getFollower(ego_id, sensed)
         # SUMO finds no neighbour where there is no lane: on a built-in road, skip those queries.
         left = not episode.one_way or lane + 1 < lane_count
@@ -1314,6 +1323,30 @@ class SumoBackend(Backend):
         )
         ego.last = obs
         return obs
+
+    def _rear_on_lane(
+        self, lane_id: str, to_end: float, ego_min_gap: float
+    ) -> tuple[str, float] | None:
+        """The nearest vehicle that has entered the junction at the end of the ego's lane,
+        `to_end` m ahead, by any of its connections, with its rear still on that lane, as
+        (id, gap less the ego's minGap) like `vehicle.getLeader`; None where none has. SUMO's
+        leader search follows the ego's own way into the junction and may not report one
+        turning elsewhere (the shipped roads policy drove into such a car, standing 2.5 m
+        ahead, on the São Paulo export once it had vanished from its observation)."""
+        lane_api, vehicle = self._api.lane, self._api.vehicle
+        nearest: tuple[str, float] | None = None
+        for link in lane_api.getLinks(lane_id):
+            via = str(link[4])
+            if not via:
+                continue
+            for other in lane_api.getLastStepVehicleIDs(via):
+                behind = vehicle.getLength(other) - vehicle.getLanePosition(other)
+                if behind <= 0.0:
+                    continue  # all of it inside the junction
+                gap = to_end - behind - ego_min_gap
+                if nearest is None or gap < nearest[1]:
+                    nearest = (other, gap)
+        return nearest
 
     def _traffic(self, episode: _Episode) -> Traffic | None:
         """Every vehicle but the egos (reset option ``report_traffic``), or None."""

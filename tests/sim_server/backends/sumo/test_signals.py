@@ -238,6 +238,33 @@ def test_idm_mobil_gives_way_at_a_junction_a_few_metres_after_another(
     assert ends == [EndReason.END_OF_ROAD] * 10, ends
 
 
+def test_a_car_turning_elsewhere_that_stands_half_in_the_junction_stays_the_leader(
+    backend: SumoBackend,
+) -> None:
+    """A car ahead of the ego on the side street turns right into the main road and stops just
+    inside the junction, its rear still on the ego's lane. SUMO's leader search follows the
+    ego's own way (straight on) and stops reporting it; the ego must see it all the same, at
+    the gap to its rear, and IDM + MOBIL stops behind it."""
+    info = {s.name: s for s in backend.scenarios()}["crossing"]
+    obs = backend.reset("crossing", 0, dict(info.options))
+    api = backend._api  # a car of the test's own, stopped where the test needs it
+    api.route.add("right", ["sj", "je"])
+    api.vehicle.add("turner", "right", departPos="120", departSpeed="0")
+    driver, seen = IDMMobilDriver(), []
+    for _ in range(1200):
+        if "turner" in api.vehicle.getIDList():
+            lane = api.vehicle.getLaneID("turner")
+            if lane.startswith(":") and api.vehicle.getLanePosition("turner") > 1.0:
+                api.vehicle.setSpeed("turner", 0.0)  # stands 1 m into the junction
+                seen.append((obs.neighbours.leader.id, obs.neighbours.leader.gap))
+        obs = backend.step(obs.seq + 1, *driver.act(obs))
+        if obs.terminated or obs.truncated or len(seen) > 150:
+            break
+    assert obs.reason != EndReason.COLLISION
+    assert len(seen) > 100 and all(leader == "turner" for leader, _ in seen[-50:]), seen[-5:]
+    assert 0.0 < seen[-1][1] < 10.0  # standing behind it
+
+
 def test_the_city_is_drawn_from_the_seed(backend: SumoBackend, tmp_path: Path) -> None:
     info = {s.name: s for s in backend.scenarios()}["urban"]
     grids = set()
