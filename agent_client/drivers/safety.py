@@ -15,9 +15,10 @@ policy decide everything else. The rules, each judged on the observation alone:
   but would no longer after one decision at the proposed acceleration, it brakes to stop there.
 * **a yellow light's dilemma** — where, after one decision at the proposed acceleration, the
   ego could neither stop before a yellow light's line (braking at `EMERGENCY_DECELERATION`)
-  nor reach it before the light turns red (holding its speed), it accelerates just enough to
-  reach it in time (up to `CLEARING_AT_MOST`; a policy that brakes late for a yellow light
-  would otherwise run the red one: twice in 100 trips on an OSM city).
+  nor reach it before the light turns red (holding its speed, within the speed limit), it
+  brakes just enough to stop or accelerates just enough to reach it in time (up to
+  `CLEARING_AT_MOST`), whichever is nearer to the proposal (a policy that brakes late for a
+  yellow light ran the red one twice in 100 trips on an OSM city).
 * **a lane end about to be missed** — within `URGENT_TIME` (and at least `URGENT_DISTANCE`) per
   lane to cross of the end of a lane the route must leave, the change towards the route is
   asked for whatever the policy chose (the simulator still refuses an unsafe gap); and the end
@@ -107,9 +108,9 @@ class SafetyLayer:
         if acceleration > stop + TOLERANCE:
             acceleration = stop
             rule = rule or ("stop_line" if road.stop_line <= lane_end else "lane_end")
-        through = self._through_yellow(obs, acceleration)
-        if acceleration < through - TOLERANCE:
-            acceleration, rule = min(through, safe), rule or "yellow"
+        yellow = self._out_of_the_dilemma(obs, acceleration)
+        if yellow is not None:
+            acceleration, rule = min(yellow, safe), rule or "yellow"
         if not rule and acceleration < MOVE_OFF - TOLERANCE and _needless_stop(obs):
             acceleration, rule = min(MOVE_OFF, safe, stop), "standstill"
         if not rule and not lane_rule:
@@ -157,42 +158,51 @@ class SafetyLayer:
 
         return self._highest(margin)
 
-    def _through_yellow(self, obs: Observation, acceleration: float) -> float:
-        """The lowest acceleration that keeps the ego out of the dilemma of a yellow light:
-        where, after one decision at `acceleration`, it could neither stop before the line
-        (braking at `EMERGENCY_DECELERATION`) nor reach it before the light turns red (holding
-        its speed), the least acceleration that reaches it in time, up to `CLEARING_AT_MOST`;
-        -inf where no rule applies (no yellow light ahead, or either way open)."""
+    def _out_of_the_dilemma(self, obs: Observation, acceleration: float) -> float | None:
+        """The acceleration nearest `acceleration` that keeps the ego out of a yellow light's
+        dilemma: where, after one decision at `acceleration`, it could neither stop before the
+        line (braking at `EMERGENCY_DECELERATION`) nor reach it before the light turns red
+        (holding its speed, no faster than the speed limit), the highest that still lets it
+        stop or the lowest that reaches the line in time (up to `CLEARING_AT_MOST`), whichever
+        is nearer; `CLEARING_AT_MOST` where neither does. None where no rule applies (no
+        yellow light ahead, or either way open)."""
         road = road_ahead(obs)
         if road.signal_state != SignalState.YELLOW or road.signal_distance >= ROAD_RANGE:
-            return -math.inf
+            return None
         line, left, speed = road.signal_distance, road.signal_switch, obs.ego.speed
+        limit = obs.ego.speed_limit if obs.ego.speed_limit > 0.0 else math.inf
         b, dt = EMERGENCY_DECELERATION, self.interval
 
         def after(a: float) -> tuple[float, float]:
             v_next = max(speed + a * dt, 0.0)
             return v_next, 0.5 * (speed + v_next) * dt
 
-        def can_stop(a: float) -> bool:
+        def stop_margin(a: float) -> float:
             v_next, driven = after(a)
-            return v_next * v_next / (2 * b) <= line - driven + TOLERANCE
+            return line - driven - v_next * v_next / (2 * b)
 
         def reaches(a: float) -> float:  # the margin past the line at the switch
             v_next, driven = after(a)
-            return driven + v_next * max(left - dt, 0.0) - line - MIN_GAP
+            return driven + min(v_next, limit) * max(left - dt, 0.0) - line - MIN_GAP
 
-        if can_stop(acceleration) or reaches(acceleration) >= 0.0:
-            return -math.inf
-        low, high = acceleration, CLEARING_AT_MOST
-        if reaches(high) < 0.0:
-            return high  # it cannot make it: the nearer it gets, the sooner it is across
-        for _ in range(40):
-            mid = 0.5 * (low + high)
-            if reaches(mid) >= 0.0:
-                high = mid
-            else:
-                low = mid
-        return high
+        if stop_margin(acceleration) >= -TOLERANCE or reaches(acceleration) >= 0.0:
+            return None
+        options: list[float] = []
+        stop = self._highest(stop_margin)
+        if stop_margin(stop) >= -TOLERANCE:
+            options.append(stop)
+        if reaches(CLEARING_AT_MOST) >= 0.0:
+            low, high = acceleration, CLEARING_AT_MOST
+            for _ in range(40):
+                mid = 0.5 * (low + high)
+                if reaches(mid) >= 0.0:
+                    high = mid
+                else:
+                    low = mid
+            options.append(high)
+        if not options:
+            return CLEARING_AT_MOST  # neither: the nearer it gets, the sooner it is across
+        return min(options, key=lambda a: abs(a - acceleration))
 
     def _highest(self, margin: Callable[[float], float]) -> float:
         """The highest acceleration (within [lowest, +inf)) whose `margin` is not negative:
