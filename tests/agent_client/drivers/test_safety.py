@@ -100,6 +100,11 @@ def test_a_yellow_light_braked_for_too_late_is_cleared_before_it_turns_red() -> 
     assert override.rule == "yellow" and acceleration > -5.5
     early = replace(yellow, signal_distance=45.0, signal_switch=2.8)  # 22 m/s: it can stop
     assert LAYER.apply(observation(22.0, road=early), -5.0, 0)[2] == NONE
+    far = replace(yellow, signal_distance=36.0, signal_switch=1.3)  # too far to clear in time
+    acceleration, _, override = LAYER.apply(observation(20.0, road=far), 2.0, 0)
+    assert override.rule == "yellow" and 1.0 < acceleration < 2.0  # it keeps the stop possible
+    v_next = 20.0 + 0.1 * acceleration
+    assert v_next**2 / (2 * EMERGENCY_DECELERATION) <= 36.0 - 0.05 * (20.0 + v_next) + 1e-6
 
 
 def test_a_lane_end_about_to_be_missed_gets_the_change_the_route_needs() -> None:
