@@ -130,8 +130,10 @@ CEILING_WALL_S = 2.0
 """Longest wall-clock time (s) spent waiting for the leader-at-entry: the episode's last reply
 must come within any client's step deadline, whatever the network (a city of thousands of
 vehicles simulates far slower than real time would allow an hour of it)."""
-TURNED = frozenset("yYru")
-"""Link states of a light that has turned against the vehicles still inside its junction."""
+TURNED = frozenset("ru")
+"""Link states of a light that has turned red against the vehicles still inside its junction
+(yellow is not enough: the oncoming stream drives on through its own yellow, and a left turn
+that went on its yellow met it on the Greenville export)."""
 UNMEASURED = 1e6
 """m: a neighbour distance SUMO reports beyond this (its -DBL_MAX) was not measured."""
 VEHICLE_LENGTH = 5.0
@@ -1251,6 +1253,8 @@ class SumoBackend(Backend):
             line = stop_line(links, to_junction, speed, state.speed_limit, foes, yellow_left)
             ego.give_way = ROAD_RANGE if not links or links[0][1] else max(to_junction, 0.0)
             if line >= ROAD_RANGE and not episode.one_way:
+                line = self._stop_at_waiting_point(episode, ego, links, to_junction, speed)
+            if line >= ROAD_RANGE and not episode.one_way:
                 line = self._stop_further(episode, ego_id, links, to_junction, speed)
             road = replace(road, stop_line=line)
         if road is None:  # on a junction
@@ -1367,7 +1371,7 @@ class SumoBackend(Backend):
         (SUMO's internal junction) of a vehicle turning across oncoming traffic, while the
         foes with priority over its way on (from the lane it came from) are too close;
         `ROAD_RANGE` where the way on is open, or once the light it entered at has turned
-        yellow or red (the junction is cleared by those inside it)."""
+        red (the junction is cleared by those inside it)."""
         lanes = self._api.lane
         links = lanes.getLinks(lane_id)
         if not links or not ego.approach_lane:
@@ -1375,13 +1379,34 @@ class SumoBackend(Backend):
         own = next(
             (link[5] for link in lanes.getLinks(ego.approach_lane) if link[0] == links[0][0]), ""
         )
-        if own in TURNED:  # its light has turned: it clears the junction, the others wait
+        if own in TURNED:  # its light has turned red: it clears the junction, the others wait
             return ROAD_RANGE
         to_junction = self._lane_length(lane_id) - lane_position
         speed = self._api.vehicle.getSpeed(ego.id)
         foes = self._priority_foes(episode, ego.id, ego.approach_lane, links, to_junction)
         limit = self._api.lane.getMaxSpeed(lane_id)
         return stop_line(links, to_junction, speed, limit, foes)
+
+    def _stop_at_waiting_point(
+        self, episode: _Episode, ego: EgoState, links: Any, to_junction: float, speed: float
+    ) -> float:
+        """Approaching a turn across oncoming traffic (the next link's junction lane ends at
+        a waiting point inside the junction, SUMO's internal junction): the waiting point's
+        stop line (`_stop_within`) once it is within `FURTHER_LOOK` plus the ego's braking
+        distance, so that the ego comes slowly enough to stop there while the oncoming stream
+        comes (IDM + MOBIL turned left at 18 m/s into oncoming traffic on the Greenville
+        export, the waiting point first judged 1.4 m before it). ROAD_RANGE otherwise."""
+        if not links or not links[0][4]:
+            return ROAD_RANGE
+        via = str(links[0][4])
+        if episode.junction_foes is None:
+            episode.junction_foes = JunctionFoes(self._api)
+        if not episode.junction_foes.waits_inside(via):
+            return ROAD_RANGE
+        look = FURTHER_LOOK + speed * speed / (2.0 * FURTHER_DECELERATION)
+        if to_junction + self._lane_length(via) > look:
+            return ROAD_RANGE
+        return self._stop_within(episode, ego, via, -to_junction)
 
     def _stop_further(
         self, episode: _Episode, ego_id: str, links: Any, to_junction: float, speed: float
