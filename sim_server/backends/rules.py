@@ -106,7 +106,8 @@ class EndRule:
     ego's route (slower than ``stop_speed`` within ``stop_gap`` of its end, `Observation.road`,
     for ``lane_end_patience`` seconds: a merge not made, an exit missed); an unreasonable stop
     (slower than ``stop_speed`` for ``stop_patience`` seconds, with no leader or one more than
-    ``stop_gap`` ahead and faster, where the road does not make the ego wait: not within
+    ``stop_gap`` ahead and faster (beyond a junction: more than ``stop_gap`` beyond its far
+    side, room to leave the junction), where the road does not make the ego wait: not within
     ``stop_gap`` of a stop line, `Road.stop_line`, nor within `GAP_WAIT_DISTANCE` per lane to
     cross of the end of a lane it must leave, waiting for a gap, nor within ``stop_gap`` of a
     junction where it gives way, whatever `Road.stop_line` says (a driver may wait longer than
@@ -154,10 +155,15 @@ class EndRule:
         """Simulation time at which the client took over the ego."""
         return self._entry_time
 
-    def check(self, obs: Observation, give_way: float = ROAD_RANGE) -> EndReason | None:
+    def check(
+        self, obs: Observation, give_way: float = ROAD_RANGE, across: float = 0.0
+    ) -> EndReason | None:
         """The reason the episode ends with `obs`, or None while it goes on; `give_way`: m to
         the next junction where the ego has no priority, where the simulator knows it (a driver
-        may wait there longer than `Road.stop_line` judges it must: `jam_patience` bounds it)."""
+        may wait there longer than `Road.stop_line` judges it must: `jam_patience` bounds it);
+        `across`: m to the far side of the next junction, where the simulator knows it (0:
+        none near): a leader beyond it counts by the room it leaves there, for a driver that
+        does not enter a junction it could not leave."""
         if obs.events.collision:
             return EndReason.COLLISION
         if obs.events.end_of_road:
@@ -170,7 +176,7 @@ class EndRule:
                 return EndReason.LANE_END
             self.stopped_since = None  # waiting there for a gap is no unreasonable stop
             self.stopped_at_line = True  # nor, for a while, once the gap is taken
-        elif self._stopped(obs, give_way):
+        elif self._stopped(obs, give_way, across):
             return EndReason.STOPPED
         if self._jammed(obs):
             return EndReason.JAMMED
@@ -195,9 +201,10 @@ class EndRule:
             self.at_lane_end_since = obs.time
         return obs.time - self.at_lane_end_since
 
-    def _stopped(self, obs: Observation, give_way: float) -> bool:
+    def _stopped(self, obs: Observation, give_way: float, across: float) -> bool:
         leader = obs.neighbours.leader
         speed = obs.ego.speed
+        gap = leader.gap - across if 0.0 < across < leader.gap else leader.gap
         if speed >= self._stop_speed:
             self.stopped_at_line = False
         elif self._made_to_wait(obs) or give_way <= self._stop_gap:
@@ -205,7 +212,7 @@ class EndRule:
             self.stopped_since = None
             return False
         if speed < self._stop_speed and (
-            not leader.present or (leader.gap > self._stop_gap and speed < leader.speed)
+            not leader.present or (gap > self._stop_gap and speed < leader.speed)
         ):
             if self.stopped_since is None:
                 self.stopped_since = obs.time

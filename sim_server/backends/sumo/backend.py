@@ -149,6 +149,8 @@ MAX_FURTHER_LINKS = 4
 PARTIAL_LOOK = 20.0
 """m before the end of its lane within which the ego looks for a vehicle that has entered the
 junction with its rear still on the lane."""
+ACROSS_LOOK = 50.0
+"""m before a junction within which its far side is measured for the stop rule."""
 INSERTION_WALL_S = 120.0
 """Longest wall-clock time (s) a reset waits for an ego to enter (beside the simulated
 ``insertion_timeout``): within the client's reset deadline on any network."""
@@ -909,7 +911,7 @@ class SumoBackend(Backend):
         if obs is None:  # gone without arriving
             lost = self._arrival_observation(episode, ego, seq, events, action, traffic)
             return ended(lost, EndReason.EGO_LOST)
-        reason = ego.end.check(obs, ego.give_way)
+        reason = ego.end.check(obs, ego.give_way, ego.across)
         return obs if reason is None else ended(obs, reason)
 
     def _observe_if_present(
@@ -1252,13 +1254,16 @@ class SumoBackend(Backend):
             yellow_left = signal.switch if at_light else math.inf
             line = stop_line(links, to_junction, speed, state.speed_limit, foes, yellow_left)
             ego.give_way = ROAD_RANGE if not links or links[0][1] else max(to_junction, 0.0)
+            ego.across = 0.0
+            if links and 0.0 <= to_junction <= ACROSS_LOOK:
+                ego.across = to_junction + self._inside_length(str(links[0][4]))
             if line >= ROAD_RANGE and not episode.one_way:
                 line = self._stop_at_waiting_point(episode, ego, links, to_junction, speed)
             if line >= ROAD_RANGE and not episode.one_way:
                 line = self._stop_further(episode, ego_id, links, to_junction, speed)
             road = replace(road, stop_line=line)
         if road is None:  # on a junction
-            ego.give_way = ROAD_RANGE
+            ego.give_way, ego.across = ROAD_RANGE, 0.0
             last = ego.last
             driven = position - last.ego.position if last is not None else 0.0
             road = carried(last.road if last is not None else None, driven, lane, lane_count)

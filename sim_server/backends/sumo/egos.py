@@ -71,6 +71,9 @@ class EgoState:
     give_way: float = ROAD_RANGE
     """m to the next junction where it has no priority (gives way, or a permissive green) at
     its latest observation; ROAD_RANGE where it has priority, or none is ahead."""
+    across: float = 0.0
+    """m to the far side of the next junction (its lane's end and the junction's lane) at its
+    latest observation, within 50 m of it; 0 where none is that near."""
 
 
 class Drive:

@@ -356,6 +356,21 @@ def test_waiting_at_a_junction_that_gives_way_is_no_unreasonable_stop() -> None:
     assert found[20] is EndReason.STOPPED
 
 
+def test_a_leader_beyond_a_junction_counts_by_the_room_it_leaves_beyond_it() -> None:
+    """SUMO's own driver stands 1 m before a junction it has priority at, its leader 17 m
+    ahead and driving off slowly: beyond the 10 m junction there is no room for it yet, and it
+    does not enter a junction it could not leave (the Greenville export: 3 `stopped`). With
+    the junction's far side 11 m ahead the stop is a wait; with no junction near, it is not."""
+    leader = Neighbour(True, 17.0, 0.0, 0.5, "creeping off")
+    times = tenths(ENTRY + 0.9, 30)
+    rule = EndRule(OPTIONS, ENTRY)
+    found = [rule.check(observation(t, 0.0, leader), ROAD_RANGE, 11.0) for t in times]
+    assert found == [None] * 30
+    rule = EndRule(OPTIONS, ENTRY)
+    found = [rule.check(observation(t, 0.0, leader), ROAD_RANGE, 0.0) for t in times]
+    assert found[20] is EndReason.STOPPED
+
+
 def test_a_stand_at_a_lane_end_has_the_lane_ends_patience_once_the_lane_is_left() -> None:
     """SUMO's own driver stands at the end of a short lane until a gap opens, changes lanes
     standing, then waits a moment more: the stop began at the lane end, so it has
