@@ -21,6 +21,7 @@ Routing" (trips routed at departure).
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import random
@@ -68,12 +69,18 @@ OSM_OPTIONS: tuple[str, ...] = (
     "--junctions.corner-detail", "5",
     "--output.street-names", "true",
     "--output.original-names", "true",
+    "--internal-junctions.vehicle-width", "3.0",
 )  # fmt: skip
 """netconvert's options for an OSM export, as SUMO's own osmBuild.py and osmWebWizard.py import
 one (SUMO docs, "Networks/Import/OpenStreetMap"): acceleration and deceleration lanes where a
 ramp joins (OSM rarely maps them), signals guessed where OSM marks them near a junction and
 joined where they belong to one junction, actuated as most modern signals are, roundabouts,
-joined junction clusters, only roads a car may drive, isolated pieces dropped."""
+joined junction clusters, only roads a car may drive, isolated pieces dropped; and the waiting
+points inside junctions (a left turn's, where it waits for the oncoming stream) placed for a
+vehicle 3 m wide: netconvert's default (1.8 m, a car) puts them where a truck (2.4 m) waiting
+there, or a car cutting the corner, stands on the crossing way, and SUMO's own drivers drove
+into such cars in 4 of 100 trips on an OSM export of Greenville, none with 3 m (3 of the 4
+gone with 2.4 m)."""
 OSM_TIMEOUT_S = 600.0
 """Longest netconvert may take on an OSM export."""
 FIRST_FILL_S = 90.0
@@ -335,8 +342,9 @@ def map_config(net_file: Path) -> str:
 
 def build_osm(osm_file: Path, cache_dir: Path, log: Any = None) -> Path:
     """The network netconvert builds from an OSM export (`OSM_OPTIONS`), built once into the
-    cache (keyed by the export's content); its path."""
-    folder = cache_dir / "maps" / f"{_stem(osm_file)}-{file_digest(osm_file)}"
+    cache (keyed by the export's content and the options); its path."""
+    options = hashlib.sha256("\0".join(OSM_OPTIONS).encode()).hexdigest()[:8]
+    folder = cache_dir / "maps" / f"{_stem(osm_file)}-{file_digest(osm_file)}-{options}"
     net = folder / "map.net.xml.gz"
     if net.is_file():
         return net
