@@ -69,18 +69,16 @@ OSM_OPTIONS: tuple[str, ...] = (
     "--junctions.corner-detail", "5",
     "--output.street-names", "true",
     "--output.original-names", "true",
-    "--internal-junctions.vehicle-width", "3.0",
 )  # fmt: skip
 """netconvert's options for an OSM export, as SUMO's own osmBuild.py and osmWebWizard.py import
 one (SUMO docs, "Networks/Import/OpenStreetMap"): acceleration and deceleration lanes where a
 ramp joins (OSM rarely maps them), signals guessed where OSM marks them near a junction and
 joined where they belong to one junction, actuated as most modern signals are, roundabouts,
-joined junction clusters, only roads a car may drive, isolated pieces dropped; and the waiting
-points inside junctions (a left turn's, where it waits for the oncoming stream) placed for a
-vehicle 3 m wide: netconvert's default (1.8 m, a car) puts them where a truck (2.4 m) waiting
-there, or a car cutting the corner, stands on the crossing way, and SUMO's own drivers drove
-into such cars in 4 of 100 trips on an OSM export of Greenville, none with 3 m (3 of the 4
-gone with 2.4 m)."""
+joined junction clusters, only roads a car may drive, isolated pieces dropped. (Waiting points
+placed for a vehicle 3 m wide, `--internal-junctions.vehicle-width 3.0`, were tried: they
+removed the four Greenville collisions of SUMO's own driver they were meant for, but over 100
+trips SUMO's driver collided more often, 8 against 4, and on São Paulo both drivers collided
+where they had not: not kept. docs/results.md, "Your own map".)"""
 OSM_TIMEOUT_S = 600.0
 """Longest netconvert may take on an OSM export."""
 FIRST_FILL_S = 90.0
