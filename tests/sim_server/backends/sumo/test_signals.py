@@ -222,6 +222,19 @@ def test_a_collision_inside_a_junction_is_named_so(backend: SumoBackend) -> None
         assert obs.reason == EndReason.END_OF_ROAD and obs.events.collision_type == ""
 
 
+def idm_mobil_ends(backend: SumoBackend, scenario: str, seeds: range) -> list[str]:
+    """How IDM + MOBIL's episode ends on `scenario`, seed by seed."""
+    info = {s.name: s for s in backend.scenarios()}[scenario]
+    ends = []
+    for seed in seeds:
+        obs = backend.reset(scenario, seed, dict(info.options))
+        driver = IDMMobilDriver()
+        while not (obs.terminated or obs.truncated):
+            obs = backend.step(obs.seq + 1, *driver.act(obs))
+        ends.append(obs.reason)
+    return ends
+
+
 def test_idm_mobil_gives_way_at_a_junction_a_few_metres_after_another(
     backend: SumoBackend,
 ) -> None:
@@ -229,14 +242,7 @@ def test_idm_mobil_gives_way_at_a_junction_a_few_metres_after_another(
     way: IDM + MOBIL looks beyond the first junction and waits before it while the main road's
     traffic approaches (looking at the next junction only, it drove into that traffic on 5
     of these 10 seeds)."""
-    info = {s.name: s for s in backend.scenarios()}["crossing_after"]
-    ends = []
-    for seed in range(10):
-        obs = backend.reset("crossing_after", seed, dict(info.options))
-        driver = IDMMobilDriver()
-        while not (obs.terminated or obs.truncated):
-            obs = backend.step(obs.seq + 1, *driver.act(obs))
-        ends.append(obs.reason)
+    ends = idm_mobil_ends(backend, "crossing_after", range(10))
     assert ends == [EndReason.END_OF_ROAD] * 10, ends
 
 
@@ -247,14 +253,7 @@ def test_idm_mobil_turns_left_across_the_oncoming_stream_without_a_collision(
     MOBIL comes slowly enough to stop at the waiting point inside the junction while that
     stream comes (judging it only once inside, it collided on 3 of these 20 seeds and stood
     jammed on one)."""
-    info = {s.name: s for s in backend.scenarios()}["crossing_left"]
-    ends = []
-    for seed in range(20):
-        obs = backend.reset("crossing_left", seed, dict(info.options))
-        driver = IDMMobilDriver()
-        while not (obs.terminated or obs.truncated):
-            obs = backend.step(obs.seq + 1, *driver.act(obs))
-        ends.append(obs.reason)
+    ends = idm_mobil_ends(backend, "crossing_left", range(20))
     assert ends == [EndReason.END_OF_ROAD] * 20, ends
 
 
