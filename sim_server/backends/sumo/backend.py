@@ -95,7 +95,14 @@ from sim_server.backends.sumo.maps import (
     ego_route,
     episode_files,
 )
-from sim_server.backends.sumo.road import Foe, carried, road_ahead, stop_line, yields_at
+from sim_server.backends.sumo.road import (
+    Foe,
+    carried,
+    road_ahead,
+    stop_line,
+    too_close,
+    yields_at,
+)
 from sim_server.backends.sumo.runtime import InProcess, OverTraci, check_display
 from sim_server.backends.sumo.scenarios import (
     BUILTIN_SCENARIOS,
@@ -1375,8 +1382,10 @@ class SumoBackend(Backend):
         """The stop line on a junction's internal lane: the waiting point inside the junction
         (SUMO's internal junction) of a vehicle turning across oncoming traffic, while the
         foes with priority over its way on (from the lane it came from) are too close;
-        `ROAD_RANGE` where the way on is open, or once the light it entered at has turned
-        red (the junction is cleared by those inside it)."""
+        `ROAD_RANGE` where the way on is open. Once the light it entered at has turned red the
+        junction is cleared by those inside it: the ego goes, but not ahead of a car already
+        inside that comes across its way (SUMO's drivers starting on their green do not wait
+        for it: Greenville, a collision)."""
         lanes = self._api.lane
         links = lanes.getLinks(lane_id)
         if not links or not ego.approach_lane:
@@ -1384,10 +1393,17 @@ class SumoBackend(Backend):
         own = next(
             (link[5] for link in lanes.getLinks(ego.approach_lane) if link[0] == links[0][0]), ""
         )
-        if own in TURNED:  # its light has turned red: it clears the junction, the others wait
-            return ROAD_RANGE
         to_junction = self._lane_length(lane_id) - lane_position
         speed = self._api.vehicle.getSpeed(ego.id)
+        if own in TURNED:
+            via = str(links[0][4])
+            if not via:
+                return ROAD_RANGE
+            if episode.junction_foes is None:
+                episode.junction_foes = JunctionFoes(self._api)
+            inside = episode.junction_foes.inside(ego.approach_lane, via, to_junction + links[0][7])
+            limit = self._api.lane.getMaxSpeed(lane_id)
+            return max(to_junction, 0.0) if too_close(inside, speed, limit) else ROAD_RANGE
         foes = self._priority_foes(episode, ego.id, ego.approach_lane, links, to_junction)
         limit = self._api.lane.getMaxSpeed(lane_id)
         return stop_line(links, to_junction, speed, limit, foes)

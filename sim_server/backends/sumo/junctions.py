@@ -40,6 +40,12 @@ CLEARANCE = 2.0
 """m the ego stops short of a vehicle standing on its way inside a junction."""
 EGO_WIDTH = 1.8
 """m: the ego's width (SUMO's passenger car)."""
+FOE_WIDTH = 2.6
+"""m: the widest vehicle assumed on a crossing junction lane (a truck, 2.55 m)."""
+CONFLICT_STEP = 0.5
+"""m between the points of a junction lane tested against the ego's way."""
+MAX_CONFLICT_STEPS = 1_000
+"""Bound on the points tested per junction lane."""
 MAX_JUNCTION_LANES = 10_000
 """Bound on the lanes looked at to list one junction's inner lanes."""
 
@@ -57,6 +63,7 @@ class JunctionFoes:
         self._lengths: dict[str, float] = {}
         self._foes_of: dict[str, tuple[str, ...]] = {}
         self._inside_lanes: dict[str, tuple[str, ...]] = {}
+        self._conflicts: dict[tuple[str, str], tuple[float, float] | None] = {}
 
     def of(self, from_lane: str, to_lane: str, ego_exit: float) -> tuple[Foe, ...]:
         """The foes of the connection `from_lane` -> `to_lane`; `ego_exit` is the ego's
@@ -115,8 +122,18 @@ class JunctionFoes:
         crossing, named_by = lanes
         found: list[Foe] = []
         for lane in crossing:
+            span = self._conflict(lane, via)
             for other in lane_api.getLastStepVehicleIDs(lane):
-                found.append(Foe(0.0, CROSSING_LENGTH, vehicle.getSpeed(other), ego_exit))
+                speed = vehicle.getSpeed(other)
+                if span is None:  # named a foe, but its way does not meet the ego's
+                    if self._on_the_way(other, via):
+                        found.append(Foe(0.0, CROSSING_LENGTH, speed, ego_exit))
+                    continue
+                front = vehicle.getLanePosition(other)
+                rear = front - vehicle.getLength(other)
+                if rear > span[1]:
+                    continue  # through: its rear has left the ego's way
+                found.append(Foe(max(span[0] - front, 0.0), span[1] - rear, speed, ego_exit))
         for lane in named_by:
             for other in lane_api.getLastStepVehicleIDs(lane):
                 if self._on_the_way(other, via):
@@ -179,6 +196,32 @@ class JunctionFoes:
             if _projection(point, way)[0] < EGO_WIDTH:
                 return True
         return False
+
+    def _conflict(self, lane: str, via: str) -> tuple[float, float] | None:
+        """(first, last) m along junction lane `lane` where a vehicle on it (up to
+        `FOE_WIDTH` wide) would touch the ego on junction lane `via`; None where the two ways
+        do not meet. SUMO names as foes of a turn's lane up to its waiting point the oncoming
+        lanes it waits for there, whose ways meet only the lane after the waiting point: a car
+        on those does not close the way into the junction (Greenville: IDM + MOBIL stood
+        before a left turn for three cycles while each green's oncoming cars drove by)."""
+        key = (lane, via)
+        if key in self._conflicts:
+            return self._conflicts[key]
+        shape, way = self._shape(lane), self._shape(via)
+        length = _length_of(shape)
+        reach = 0.5 * (FOE_WIDTH + EGO_WIDTH)
+        steps = min(int(length / CONFLICT_STEP) + 1, MAX_CONFLICT_STEPS)
+        touching = [
+            along
+            for along in (k * length / max(steps - 1, 1) for k in range(steps))
+            if _projection(_point_at(shape, along), way)[0] < reach
+        ]
+        step = length / max(steps - 1, 1)  # widened by a step: the sampling's error
+        span = (
+            (max(touching[0] - step, 0.0), min(touching[-1] + step, length)) if touching else None
+        )
+        self._conflicts[key] = span
+        return span
 
     def _on_the_way(self, other: str, via: str) -> bool:
         """Whether vehicle `other`'s body (its front, middle or rear) lies within the two

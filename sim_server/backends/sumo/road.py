@@ -142,7 +142,7 @@ def stop_line(
     `yellow_left` seconds before it turns red (then it must stop, braking harder); not open by
     SUMO's right of way (foes with priority approach, a stop sign not yet stopped at), or too
     close a foe (`foes`) for the ego to leave the conflict point from its speed at
-    `CLEARING_ACCELERATION` (`_too_close`). No links (a lane that ends, the end of the route):
+    `CLEARING_ACCELERATION` (`too_close`). No links (a lane that ends, the end of the route):
     none."""
     if not next_links or to_junction >= ROAD_RANGE:
         return ROAD_RANGE
@@ -153,7 +153,7 @@ def stop_line(
         can_stop = speed * speed <= 2.0 * YELLOW_DECELERATION * room
         closed = can_stop or room > speed * yellow_left
     else:
-        closed = state in CLOSED_STATES or not link[_OPEN] or _too_close(foes, speed, speed_limit)
+        closed = state in CLOSED_STATES or not link[_OPEN] or too_close(foes, speed, speed_limit)
     return room if closed else ROAD_RANGE
 
 
@@ -166,7 +166,7 @@ def yields_at(next_links: Any) -> str:
     return "" if link[_PRIORITY] or not link[_OPEN] else str(link[_VIA])
 
 
-def _too_close(foes: Sequence[Foe], speed: float, speed_limit: float) -> bool:
+def too_close(foes: Sequence[Foe], speed: float, speed_limit: float) -> bool:
     """A foe would come too close once the ego has left the conflict point (its rear there): the
     foe then closes in until, braking at `FOE_DECELERATION` while the ego accelerates at
     `CLEARING_ACCELERATION`, it is down to the ego's speed, and must still keep the ego's

@@ -2,7 +2,9 @@
 link directly to the ego's (a very short edge between them, on imported networks) has no
 foes, instead of SUMO's "No connection from lane" ending the episode in an error; a vehicle
 inside the junction on a lane that names the ego's as its foe is in the ego's way, though the
-ego's lane does not name it back (SUMO's relation is not symmetric on joined clusters)."""
+ego's lane does not name it back (SUMO's relation is not symmetric on joined clusters); one
+on a crossing lane is a foe until its rear has left the ego's way, and one on a lane that SUMO
+names but whose way does not meet the ego's is none."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from sim_server.backends.sumo.junctions import CLEARANCE, JunctionFoes
+from sim_server.backends.sumo.junctions import CLEARANCE, EGO_WIDTH, FOE_WIDTH, JunctionFoes
 
 
 class NoConnection(Exception):
@@ -24,6 +26,7 @@ class Lanes:
     asked: list[tuple[str, str]] = field(default_factory=list)
     internal_foes: dict[str, list[str]] = field(default_factory=dict)
     vehicles: dict[str, list[str]] = field(default_factory=dict)
+    shapes: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
 
     def getEdgeID(self, lane: str) -> str:
         return lane.rsplit("_", 1)[0]
@@ -32,7 +35,8 @@ class Lanes:
         return self.internal_foes.get(lane, [])
 
     def getShape(self, lane: str) -> list[tuple[float, float]]:
-        return [(0.0, 0.0), (20.0, 0.0)]  # every junction lane: along x, through the origin
+        # by default every junction lane runs along x, through the origin
+        return self.shapes.get(lane, [(0.0, 0.0), (20.0, 0.0)])
 
     def getLinks(self, lane: str) -> list[tuple[object, ...]]:
         return self.links.get(lane, [])
@@ -64,6 +68,10 @@ class Junctions:
 class Vehicles:
     positions: dict[str, tuple[float, float]] = field(default_factory=dict)
     angles: dict[str, float] = field(default_factory=dict)
+    lane_positions: dict[str, float] = field(default_factory=dict)
+
+    def getLanePosition(self, vehicle: str) -> float:
+        return self.lane_positions[vehicle]
 
     def getSpeed(self, vehicle: str) -> float:
         return 0.0
@@ -142,3 +150,38 @@ def test_inside_a_junction_the_ego_stops_short_of_a_vehicle_standing_on_its_way(
     assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 15.0) == math.inf  # passed it
     api.vehicle.positions = {"turning": (14.0, 9.0)}  # clear of the way
     assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 4.0) == math.inf
+
+
+def test_a_crossing_vehicle_is_a_foe_until_its_rear_has_left_the_egos_way() -> None:
+    """A lane the ego's names as its foe crosses it (here at right angles, 10 m along it): a
+    car on it is a foe from where it is to the crossing, until its rear is through; a lane
+    SUMO names whose way never meets the ego's (the oncoming lanes of a turn's lane up to
+    its waiting point, which meet only the lane after it) holds no foe unless a car's body
+    is on the ego's way (Greenville: IDM + MOBIL stood before such a turn for three cycles)."""
+    api = Api()
+    api.lane.links = {
+        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 20.0)],
+        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", "G", "s", 20.0)],
+        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
+        ":j_1_0": [("d_0", "", "1", "1", "", "G", "s", 0.0)],
+    }
+    api.lane.shapes = {":j_1_0": [(10.0, -10.0), (10.0, 10.0)]}  # northwards across x = 10
+    api.lane.internal_foes = {":j_0_0": [":j_1_0"], ":j_1_0": [":j_0_0"]}
+    api.lane.vehicles = {":j_1_0": ["crossing"]}
+    api.vehicle.positions = {"crossing": (10.0, -5.0)}
+    api.vehicle.lane_positions = {"crossing": 5.0}  # its front 5 m along, 2.8 m before the way
+    (foe,) = JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)
+    reach = 0.5 * (FOE_WIDTH + EGO_WIDTH)
+    assert foe.distance == pytest.approx(10.0 - reach - 5.0, abs=0.6)
+    assert foe.exit_distance == pytest.approx(10.0 + reach, abs=0.6)  # its rear at 0 m
+    api.vehicle.positions = {"crossing": (10.0, 1.0)}
+    api.vehicle.lane_positions = {"crossing": 11.0}  # on the way
+    (foe,) = JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)
+    assert foe.distance == 0.0 and foe.exit_distance > 0.0
+    api.vehicle.positions = {"crossing": (10.0, 8.0)}
+    api.vehicle.lane_positions = {"crossing": 18.0}  # its rear at 13 m: through
+    assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
+    api.lane.shapes = {":j_1_0": [(30.0, -10.0), (30.0, 10.0)]}  # named, but 10 m beyond the way
+    api.vehicle.positions = {"crossing": (30.0, 0.0)}
+    api.vehicle.lane_positions = {"crossing": 10.0}
+    assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
