@@ -34,6 +34,10 @@ BLOCKING_TIME = 2.0
 """s: also from as far as the ego drives in this time."""
 STANDING_SPEED = 2.0
 """m/s: slower than this, a vehicle inside a junction stands in the way of those it is on."""
+STOPPED_SPEED = 0.5
+"""m/s: slower than this, a vehicle inside a junction short of the ego's way waits there (for
+the ego, as often as not: counting it as coming, the ego on São Paulo's export waited for a
+car that waited for it until `jam_patience` ended the trip)."""
 WAITING_CAR = 5.0
 """m: the length of the car assumed standing at a waiting point."""
 CLEARANCE = 2.0
@@ -113,8 +117,10 @@ class JunctionFoes:
         """The vehicles inside the junction now on a lane that crosses or merges with the
         ego's junction lane `via` (taken from `from_lane`; whoever has priority: they are in
         the way), or that names `via` as its foe without `via` naming it back and ends at a
-        waiting point on the ego's way (`_crossing_lanes`); and those on the other lanes
-        that name `via` whose body is on the ego's way now (`_on_the_way`)."""
+        waiting point on the ego's way (`_crossing_lanes`): each from where it is to where
+        the ways meet (`_conflict`), until its rear is through, unless it stopped short of
+        them; and those on the other lanes that name `via` whose body is on the ego's way
+        now (`_on_the_way`)."""
         lane_api, vehicle = self._api.lane, self._api.vehicle
         lanes = self._crossing.get(via)
         if lanes is None:
@@ -133,7 +139,10 @@ class JunctionFoes:
                 rear = front - vehicle.getLength(other)
                 if rear > span[1]:
                     continue  # through: its rear has left the ego's way
-                found.append(Foe(max(span[0] - front, 0.0), span[1] - rear, speed, ego_exit))
+                distance = max(span[0] - front, 0.0)
+                if distance > 0.0 and speed < STOPPED_SPEED:
+                    continue  # stopped short of the ego's way: it waits, often for the ego
+                found.append(Foe(distance, span[1] - rear, speed, ego_exit))
         for lane in named_by:
             for other in lane_api.getLastStepVehicleIDs(lane):
                 if self._on_the_way(other, via):

@@ -69,12 +69,13 @@ class Vehicles:
     positions: dict[str, tuple[float, float]] = field(default_factory=dict)
     angles: dict[str, float] = field(default_factory=dict)
     lane_positions: dict[str, float] = field(default_factory=dict)
+    speeds: dict[str, float] = field(default_factory=dict)
 
     def getLanePosition(self, vehicle: str) -> float:
         return self.lane_positions[vehicle]
 
     def getSpeed(self, vehicle: str) -> float:
-        return 0.0
+        return self.speeds.get(vehicle, 0.0)
 
     def getPosition(self, vehicle: str) -> tuple[float, float]:
         return self.positions[vehicle]
@@ -154,7 +155,8 @@ def test_inside_a_junction_the_ego_stops_short_of_a_vehicle_standing_on_its_way(
 
 def test_a_crossing_vehicle_is_a_foe_until_its_rear_has_left_the_egos_way() -> None:
     """A lane the ego's names as its foe crosses it (here at right angles, 10 m along it): a
-    car on it is a foe from where it is to the crossing, until its rear is through; a lane
+    car on it is a foe from where it is to the crossing, until its rear is through, not while
+    it stands short of it (it waits, often for the ego: São Paulo, a trip jammed so); a lane
     SUMO names whose way never meets the ego's (the oncoming lanes of a turn's lane up to
     its waiting point, which meet only the lane after it) holds no foe unless a car's body
     is on the ego's way (Greenville: IDM + MOBIL stood before such a turn for three cycles)."""
@@ -169,15 +171,18 @@ def test_a_crossing_vehicle_is_a_foe_until_its_rear_has_left_the_egos_way() -> N
     api.lane.internal_foes = {":j_0_0": [":j_1_0"], ":j_1_0": [":j_0_0"]}
     api.lane.vehicles = {":j_1_0": ["crossing"]}
     api.vehicle.positions = {"crossing": (10.0, -5.0)}
+    api.vehicle.speeds = {"crossing": 5.0}
     api.vehicle.lane_positions = {"crossing": 5.0}  # its front 5 m along, 2.8 m before the way
     (foe,) = JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)
     reach = 0.5 * (FOE_WIDTH + EGO_WIDTH)
     assert foe.distance == pytest.approx(10.0 - reach - 5.0, abs=0.6)
     assert foe.exit_distance == pytest.approx(10.0 + reach, abs=0.6)  # its rear at 0 m
+    api.vehicle.speeds = {"crossing": 0.0}  # stopped short of the way: it waits
+    assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
     api.vehicle.positions = {"crossing": (10.0, 1.0)}
-    api.vehicle.lane_positions = {"crossing": 11.0}  # on the way
+    api.vehicle.lane_positions = {"crossing": 11.0}  # on the way, stopped or not
     (foe,) = JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)
-    assert foe.distance == 0.0 and foe.exit_distance > 0.0
+    assert foe.distance == 0.0 and foe.exit_distance > 0.0 and foe.speed == 0.0
     api.vehicle.positions = {"crossing": (10.0, 8.0)}
     api.vehicle.lane_positions = {"crossing": 18.0}  # its rear at 13 m: through
     assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
