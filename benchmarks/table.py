@@ -10,7 +10,7 @@ result on them), through real ``sim-server`` processes, and prints per map and d
   IDM + MOBIL and SUMO's own driver on the same trips (a t-interval of the differences);
 * travel time of the trips that arrived (s);
 * shares of time headways under 1 s and of jerk samples above 5.6 m/s³, and the share of steps
-  the safety layer drove (pooled over the trips; bootstrap intervals over trips);
+  the safety layer drove (pooled over the trips; bootstrap intervals over trips), by rule;
 * lane changes started by the driver, and the share of them that are its own: IDM + MOBIL,
   asked afresh on the same observation, would not have made that change (bootstrap interval).
 
@@ -59,7 +59,7 @@ from agent_client.drivers.mobil import IDMMobilDriver
 from agent_client.drivers.spec import load_driver
 from agent_client.envs.remote_env import RemoteEnv
 from agent_client.errors import ServerError, UsageError
-from agent_client.evaluation.metrics import EpisodeSummary, episode_summary
+from agent_client.evaluation.metrics import EpisodeSummary, episode_summary, safety_rule_shares
 from protocol.errors import ErrorCode
 from protocol.messages import EndReason, Observation
 from protocol.readiness import LISTENING, stop_process, wait_for_line
@@ -396,6 +396,7 @@ def figures_of(episodes: dict[str, list[EpisodeSummary]], specs: Sequence[str]) 
             "jerk_above_limit_ci": jerk_ci,
             "safety_layer": layer,
             "safety_layer_ci": layer_ci,
+            "safety_rules": safety_rule_shares(runs),
             "lane_changes": sum(changes),
             "own_lane_changes": own,
             "own_lane_changes_ci": own_ci,
@@ -457,6 +458,13 @@ def _versus_faster(f: dict[str, Any]) -> str:
     return f"{best['difference']:+.2f}{_ci(best['ci'])}" if best else ""
 
 
+def _rules(f: dict[str, Any]) -> str:
+    """The layer's share by rule, " (lane_end 2.61 %, standstill 0.01 %)"; "" where it never
+    decided (or a table from before the rules were kept)."""
+    rules = f.get("safety_rules") or {}
+    return f" ({', '.join(f'{r} {100 * v:.2f} %' for r, v in rules.items())})" if rules else ""
+
+
 def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
     lines = [
         f"### {name}",
@@ -484,7 +492,8 @@ def table_of(name: str, figures: dict[str, Any], specs: Sequence[str]) -> str:
             f"| {f['travel_time']:.0f}{_ci(f['travel_time_ci'], 0)} "
             f"| {100 * f['headway_below_1s']:.1f} %{_ci(f['headway_below_1s_ci'], 1, 100)} "
             f"| {100 * f['jerk_above_limit']:.2f} %{_ci(f['jerk_above_limit_ci'], 2, 100)} "
-            f"| {100 * f['safety_layer']:.2f} %{_ci(f['safety_layer_ci'], 2, 100)} | {own} |"
+            f"| {100 * f['safety_layer']:.2f} %{_ci(f['safety_layer_ci'], 2, 100)}{_rules(f)} "
+            f"| {own} |"
         )
     return "\n".join(lines) + "\n"
 

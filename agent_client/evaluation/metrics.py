@@ -291,6 +291,19 @@ def aggregate(summaries: Sequence[EpisodeSummary]) -> dict[str, float]:
     }
 
 
+def safety_rule_shares(summaries: Sequence[EpisodeSummary]) -> dict[str, float]:
+    """The share of all the episodes' steps in which the safety layer decided, by rule
+    (``{"lane_end": 0.026, ...}``; `EpisodeSummary.safety_rules`): which stated rule drove
+    where the layer did. Empty where it never did."""
+    counts: Counter[str] = Counter()
+    for s in summaries:
+        for item in s.safety_rules.split():
+            rule, _, count = item.rpartition(":")
+            counts[rule] += int(count)
+    steps = sum(s.steps for s in summaries)
+    return {rule: count / max(steps, 1) for rule, count in sorted(counts.items())}
+
+
 def _pooled_headway_share(summaries: Sequence[EpisodeSummary]) -> float:
     """Share of all the episodes' time headways below `HEADWAY_SAFE` (0 without any).
 

@@ -160,4 +160,5 @@ def test_the_table_on_a_small_grid(tmp_path: Path, scenario_cache: Path) -> None
     assert "cflc" in done.stdout and "idm+mobil" in done.stdout
     # IDM + MOBIL's lane changes are MOBIL's own decisions: none counted as the driver's own
     assert row["lane_changes"] > 0 and row["own_lane_changes"] == 0.0
+    assert row["safety_layer"] == 0.0 and row["safety_rules"] == {}  # no layer, no rule
     assert saved["results"]["cflc"]["idm"]["lane_changes"] == 0

@@ -96,6 +96,7 @@ from sim_server.backends.sumo.maps import (
     episode_files,
 )
 from sim_server.backends.sumo.road import (
+    FOE_DECELERATION,
     Foe,
     carried,
     road_ahead,
@@ -1384,8 +1385,10 @@ class SumoBackend(Backend):
         foes with priority over its way on (from the lane it came from) are too close;
         `ROAD_RANGE` where the way on is open. Once the light it entered at has turned red the
         junction is cleared by those inside it: the ego goes, but not ahead of a car already
-        inside that comes across its way (SUMO's drivers starting on their green do not wait
-        for it: Greenville, a collision)."""
+        inside that comes across its way, nor of one on its fresh green too fast to stop before
+        their ways meet (SUMO's drivers starting on their green do not wait for it, and
+        netconvert's programmes have no all-red time: Greenville and `urban`, collisions); those
+        that can stop wait for it (waiting for them, it stood through a cycle on Greenville)."""
         lanes = self._api.lane
         links = lanes.getLinks(lane_id)
         if not links or not ego.approach_lane:
@@ -1395,17 +1398,17 @@ class SumoBackend(Backend):
         )
         to_junction = self._lane_length(lane_id) - lane_position
         speed = self._api.vehicle.getSpeed(ego.id)
-        if own in TURNED:
-            via = str(links[0][4])
-            if not via:
-                return ROAD_RANGE
-            if episode.junction_foes is None:
-                episode.junction_foes = JunctionFoes(self._api)
-            inside = episode.junction_foes.inside(ego.approach_lane, via, to_junction + links[0][7])
-            limit = self._api.lane.getMaxSpeed(lane_id)
-            return max(to_junction, 0.0) if too_close(inside, speed, limit) else ROAD_RANGE
         foes = self._priority_foes(episode, ego.id, ego.approach_lane, links, to_junction)
         limit = self._api.lane.getMaxSpeed(lane_id)
+        if own in TURNED:  # its light has turned red: it clears, those that cannot wait first
+            via = str(links[0][4])
+            if episode.junction_foes is None or not via:
+                return ROAD_RANGE
+            ego_exit = to_junction + links[0][7]
+            first = episode.junction_foes.inside(ego.approach_lane, via, ego_exit) + tuple(
+                foe for foe in foes if foe.speed**2 > 2.0 * FOE_DECELERATION * foe.distance
+            )
+            return max(to_junction, 0.0) if too_close(first, speed, limit) else ROAD_RANGE
         return stop_line(links, to_junction, speed, limit, foes)
 
     def _stop_at_waiting_point(

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from agent_client.evaluation.metrics import (
     aggregate,
     episode_summary,
     jerk_series,
+    safety_rule_shares,
     time_headways,
     times_to_collision,
 )
@@ -92,6 +95,18 @@ def test_aggregate_pools_the_shares_of_all_samples() -> None:
     assert np.isnan(totals["speed_ratio_to_ceiling"]) and np.isnan(totals["min_ttc"])
     with pytest.raises(ValueError, match="no episodes"):
         aggregate([])
+
+
+def test_the_layers_decisions_by_rule_are_shares_of_all_steps() -> None:
+    # 300 steps with 6 lane-end and 3 collision decisions, 100 steps with 1 lane-end decision
+    first = replace(
+        summary(300, 12.0, 0.0, 0.0, 0), safety_steps=9, safety_rules="collision:3 lane_end:6"
+    )
+    second = replace(summary(100, 14.0, 0.0, 0.0, 0), safety_steps=1, safety_rules="lane_end:1")
+    shares = safety_rule_shares([first, second])
+    assert shares == {"collision": 3 / 400, "lane_end": 7 / 400}
+    assert sum(shares.values()) == pytest.approx(aggregate([first, second])["safety_share"])
+    assert safety_rule_shares([summary(100, 14.0, 0.0, 0.0, 0)]) == {}
 
 
 @pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), float("inf")])

@@ -14,6 +14,7 @@ import pytest
 
 from agent_client.drivers.idm import IDMDriver, IDMParams, idm_acceleration
 from agent_client.drivers.mobil import IDMMobilDriver
+from agent_client.drivers.spec import load_driver
 from protocol.messages import (
     ROAD_RANGE,
     SIGNAL_HORIZON,
@@ -255,6 +256,22 @@ def test_idm_mobil_turns_left_across_the_oncoming_stream_without_a_collision(
     jammed on one)."""
     ends = idm_mobil_ends(backend, "crossing_left", range(20))
     assert ends == [EndReason.END_OF_ROAD] * 20, ends
+
+
+def test_a_left_turn_clearing_on_its_red_gives_way_to_an_oncoming_car_too_fast_to_stop(
+    backend: SumoBackend,
+) -> None:
+    """On `urban` (tuning seed 300013) the ego waits at a left turn's waiting point; its light
+    turns red as the oncoming stream's turns green (netconvert's programmes have no all-red
+    time), an oncoming car 3-17 m from its stop line at 12.7 m/s. Clearing at once, the
+    shipped roads policy drove into it (SUMO's drivers on their fresh green do not wait for a
+    car inside the junction); it now waits for that car, and arrives."""
+    info = {s.name: s for s in backend.scenarios()}["urban"]
+    driver = load_driver("pretrained:roads")
+    obs = backend.reset("urban", 300013, dict(info.options))
+    while not (obs.terminated or obs.truncated):
+        obs = backend.step(obs.seq + 1, *driver.act(obs))
+    assert obs.reason == EndReason.END_OF_ROAD, obs.reason
 
 
 def test_a_car_turning_elsewhere_that_stands_half_in_the_junction_stays_the_leader(
