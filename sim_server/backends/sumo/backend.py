@@ -1401,14 +1401,14 @@ class SumoBackend(Backend):
         foes = self._priority_foes(episode, ego.id, ego.approach_lane, links, to_junction)
         limit = self._api.lane.getMaxSpeed(lane_id)
         if own in TURNED:  # its light has turned red: it clears, those that cannot wait first
-            via = str(links[0][4])
-            if episode.junction_foes is None or not via:
-                return ROAD_RANGE
-            ego_exit = to_junction + links[0][7]
-            first = episode.junction_foes.inside(ego.approach_lane, via, ego_exit) + tuple(
-                foe for foe in foes if foe.speed**2 > 2.0 * FOE_DECELERATION * foe.distance
-            )
-            return max(to_junction, 0.0) if too_close(first, speed, limit) else ROAD_RANGE
+            if episode.junction_foes is None:
+                episode.junction_foes = JunctionFoes(self._api)
+            junction = episode.junction_foes
+            via, ego_exit = str(links[0][4]), to_junction + links[0][7]
+            inside = junction.inside(ego.approach_lane, via, ego_exit) if via else ()
+            coming = foes + junction.of(ego.approach_lane, str(links[0][0]), ego_exit)
+            fast = tuple(f for f in coming if f.speed**2 > 2.0 * FOE_DECELERATION * f.distance)
+            return max(to_junction, 0.0) if too_close(inside + fast, speed, limit) else ROAD_RANGE
         return stop_line(links, to_junction, speed, limit, foes)
 
     def _stop_at_waiting_point(

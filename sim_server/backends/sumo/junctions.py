@@ -68,6 +68,7 @@ class JunctionFoes:
         self._foes_of: dict[str, tuple[str, ...]] = {}
         self._inside_lanes: dict[str, tuple[str, ...]] = {}
         self._conflicts: dict[tuple[str, str], tuple[float, float] | None] = {}
+        self._onward_lanes: dict[str, tuple[str, ...]] = {}
 
     def of(self, from_lane: str, to_lane: str, ego_exit: float) -> tuple[Foe, ...]:
         """The foes of the connection `from_lane` -> `to_lane`; `ego_exit` is the ego's
@@ -129,6 +130,16 @@ class JunctionFoes:
         found: list[Foe] = []
         for lane in crossing:
             span = self._conflict(lane, via)
+            if span is not None:  # those whose front has driven on, their rear still across
+                lane_length = self._length(lane)
+                for onward in self._onward(lane):
+                    for other in lane_api.getLastStepVehicleIDs(onward):
+                        rear = (
+                            lane_length + vehicle.getLanePosition(other) - vehicle.getLength(other)
+                        )
+                        if rear <= span[1]:
+                            speed = vehicle.getSpeed(other)
+                            found.append(Foe(0.0, span[1] - rear, speed, ego_exit))
             for other in lane_api.getLastStepVehicleIDs(lane):
                 speed = vehicle.getSpeed(other)
                 if span is None:  # named a foe, but its way does not meet the ego's
@@ -219,18 +230,30 @@ class JunctionFoes:
         shape, way = self._shape(lane), self._shape(via)
         length = _length_of(shape)
         reach = 0.5 * (FOE_WIDTH + EGO_WIDTH)
-        steps = min(int(length / CONFLICT_STEP) + 1, MAX_CONFLICT_STEPS)
+        steps = min(max(int(length / CONFLICT_STEP) + 1, 2), MAX_CONFLICT_STEPS)
+        step = length / (steps - 1)
         touching = [
-            along
-            for along in (k * length / max(steps - 1, 1) for k in range(steps))
-            if _projection(_point_at(shape, along), way)[0] < reach
+            k * step
+            for k in range(steps)
+            if _projection(_point_at(shape, k * step), way)[0] < reach
         ]
-        step = length / max(steps - 1, 1)  # widened by a step: the sampling's error
-        span = (
-            (max(touching[0] - step, 0.0), min(touching[-1] + step, length)) if touching else None
-        )
+        span = None
+        if touching:  # widened by a step (the sampling's error), in the lane's own metres
+            scale = self._length(lane) / length if length > 0.0 else 1.0
+            first, last = max(touching[0] - step, 0.0), min(touching[-1] + step, length)
+            span = (first * scale, last * scale)
         self._conflicts[key] = span
         return span
+
+    def _onward(self, lane: str) -> tuple[str, ...]:
+        """The lanes junction lane `lane` leads to (SUMO lists a vehicle on the lane its front
+        is on: one whose front has left `lane` is found on these)."""
+        onward = self._onward_lanes.get(lane)
+        if onward is None:
+            onward = self._onward_lanes[lane] = tuple(
+                str(link[0]) for link in self._api.lane.getLinks(lane)
+            )
+        return onward
 
     def _on_the_way(self, other: str, via: str) -> bool:
         """Whether vehicle `other`'s body (its front, middle or rear) lies within the two

@@ -38,6 +38,10 @@ class Lanes:
         # by default every junction lane runs along x, through the origin
         return self.shapes.get(lane, [(0.0, 0.0), (20.0, 0.0)])
 
+    def getLength(self, lane: str) -> float:
+        (x1, y1), (x2, y2) = self.getShape(lane)[0], self.getShape(lane)[-1]
+        return math.hypot(x2 - x1, y2 - y1)  # the stub's shapes are straight
+
     def getLinks(self, lane: str) -> list[tuple[object, ...]]:
         return self.links.get(lane, [])
 
@@ -70,6 +74,7 @@ class Vehicles:
     angles: dict[str, float] = field(default_factory=dict)
     lane_positions: dict[str, float] = field(default_factory=dict)
     speeds: dict[str, float] = field(default_factory=dict)
+    lengths: dict[str, float] = field(default_factory=dict)
 
     def getLanePosition(self, vehicle: str) -> float:
         return self.lane_positions[vehicle]
@@ -84,7 +89,7 @@ class Vehicles:
         return self.angles.get(vehicle, 0.0)  # 0: heading north (+y), 90: east (+x)
 
     def getLength(self, vehicle: str) -> float:
-        return 5.0
+        return self.lengths.get(vehicle, 5.0)
 
     def getWidth(self, vehicle: str) -> float:
         return 1.8
@@ -189,4 +194,25 @@ def test_a_crossing_vehicle_is_a_foe_until_its_rear_has_left_the_egos_way() -> N
     api.lane.shapes = {":j_1_0": [(30.0, -10.0), (30.0, 10.0)]}  # named, but 10 m beyond the way
     api.vehicle.positions = {"crossing": (30.0, 0.0)}
     api.vehicle.lane_positions = {"crossing": 10.0}
+    assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
+
+
+def test_a_crossing_vehicle_whose_front_has_driven_on_is_a_foe_while_its_rear_is_across() -> None:
+    """SUMO lists a vehicle on the lane its front is on: a truck whose front has left the
+    crossing lane (which ends right after the ego's way) still has its rear across it."""
+    api = Api()
+    api.lane.links = {
+        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 20.0)],
+        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", "G", "s", 13.0)],
+        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
+        ":j_1_0": [("d_0", "", "1", "1", "", "G", "s", 0.0)],
+    }
+    api.lane.shapes = {":j_1_0": [(10.0, -10.0), (10.0, 3.0)]}  # ends 3 m past the ego's way
+    api.lane.internal_foes = {":j_0_0": [":j_1_0"], ":j_1_0": [":j_0_0"]}
+    api.lane.vehicles = {"d_0": ["truck"]}
+    api.vehicle.lengths = {"truck": 12.0}
+    api.vehicle.lane_positions = {"truck": 2.0}  # its rear 13 + 2 - 12 = 3 m along :j_1_0
+    (foe,) = JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)
+    assert foe.distance == 0.0 and foe.exit_distance > 0.0
+    api.vehicle.lane_positions = {"truck": 12.5}  # its rear 0.5 m along d_0: through
     assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
