@@ -120,45 +120,64 @@ class JunctionFoes:
         the way), or that names `via` as its foe without `via` naming it back and ends at a
         waiting point on the ego's way (`_crossing_lanes`): each from where it is to where
         the ways meet (`_conflict`), until its rear is through, unless it stopped short of
-        them; and those on the other lanes that name `via` whose body is on the ego's way
-        now (`_on_the_way`)."""
-        lane_api, vehicle = self._api.lane, self._api.vehicle
+        them (`_crossing_foes`); and those on the other lanes that name `via` whose body is
+        on the ego's way now (`_named_foes`)."""
         lanes = self._crossing.get(via)
         if lanes is None:
             lanes = self._crossing[via] = self._crossing_lanes(from_lane, via)
         crossing, named_by = lanes
         found: list[Foe] = []
         for lane in crossing:
-            span = self._conflict(lane, via)
-            if span is not None:  # those whose front has driven on, their rear still across
-                lane_length = self._length(lane)
-                for onward in self._onward(lane):
-                    for other in lane_api.getLastStepVehicleIDs(onward):
-                        rear = (
-                            lane_length + vehicle.getLanePosition(other) - vehicle.getLength(other)
-                        )
-                        if rear <= span[1]:
-                            speed = vehicle.getSpeed(other)
-                            found.append(Foe(0.0, span[1] - rear, speed, ego_exit))
-            for other in lane_api.getLastStepVehicleIDs(lane):
-                speed = vehicle.getSpeed(other)
-                if span is None:  # named a foe, but its way does not meet the ego's
-                    if self._on_the_way(other, via):
-                        found.append(Foe(0.0, CROSSING_LENGTH, speed, ego_exit))
-                    continue
-                front = vehicle.getLanePosition(other)
-                rear = front - vehicle.getLength(other)
-                if rear > span[1]:
-                    continue  # through: its rear has left the ego's way
-                distance = max(span[0] - front, 0.0)
-                if distance > 0.0 and speed < STOPPED_SPEED:
-                    continue  # stopped short of the ego's way: it waits, often for the ego
-                found.append(Foe(distance, span[1] - rear, speed, ego_exit))
+            found += self._crossing_foes(lane, via, ego_exit)
         for lane in named_by:
-            for other in lane_api.getLastStepVehicleIDs(lane):
-                if self._on_the_way(other, via):
-                    found.append(Foe(0.0, CROSSING_LENGTH, vehicle.getSpeed(other), ego_exit))
+            found += self._named_foes(lane, via, ego_exit)
         return tuple(found)
+
+    def _crossing_foes(self, lane: str, via: str, ego_exit: float) -> list[Foe]:
+        """The foes on junction lane `lane`, which crosses or merges with `via` (`inside`)."""
+        lane_api, vehicle = self._api.lane, self._api.vehicle
+        span = self._conflict(lane, via)
+        found: list[Foe] = []
+        if span is not None:  # those whose front has driven on, their rear still across
+            lane_length = self._length(lane)
+            for onward in self._onward(lane):
+                for other in lane_api.getLastStepVehicleIDs(onward):
+                    rear = lane_length + vehicle.getLanePosition(other) - vehicle.getLength(other)
+                    if rear <= span[1]:
+                        speed = vehicle.getSpeed(other)
+                        found.append(Foe(0.0, span[1] - rear, speed, ego_exit))
+        for other in lane_api.getLastStepVehicleIDs(lane):
+            speed = vehicle.getSpeed(other)
+            if span is None:  # named a foe, but its way does not meet the ego's
+                if self._on_the_way(other, via):
+                    found.append(Foe(0.0, CROSSING_LENGTH, speed, ego_exit))
+                continue
+            front = vehicle.getLanePosition(other)
+            rear = front - vehicle.getLength(other)
+            if rear > span[1]:
+                continue  # through: its rear has left the ego's way
+            distance = max(span[0] - front, 0.0)
+            if distance > 0.0 and speed < STOPPED_SPEED:
+                if not self._on_the_way(other, via):
+                    continue  # stopped short of the ego's way: it waits, often for the ego
+                distance = 0.0  # short of it by its lane, but its body is across the way
+            found.append(Foe(distance, span[1] - rear, speed, ego_exit))
+        return found
+
+    def _named_foes(self, lane: str, via: str, ego_exit: float) -> list[Foe]:
+        """The foes on junction lane `lane`, which names `via` as its foe without being named
+        back (`inside`): those whose body is on the ego's way, by their lane's conflict span
+        or by where their body lies (a truck starting a U-turn stood across it: São Paulo)."""
+        lane_api, vehicle = self._api.lane, self._api.vehicle
+        span = self._conflict(lane, via)
+        found: list[Foe] = []
+        for other in lane_api.getLastStepVehicleIDs(lane):
+            front = vehicle.getLanePosition(other)
+            rear = front - vehicle.getLength(other)
+            across = span is not None and span[0] <= front and rear <= span[1]
+            if across or self._on_the_way(other, via):
+                found.append(Foe(0.0, CROSSING_LENGTH, vehicle.getSpeed(other), ego_exit))
+        return found
 
     def standing_ahead(self, from_lane: str, lane: str, position: float) -> float:
         """On the junction lane `lane` (entered from `from_lane`), `position` m along it: m

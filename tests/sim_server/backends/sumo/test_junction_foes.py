@@ -125,7 +125,9 @@ def test_a_vehicle_standing_on_a_lane_that_names_the_egos_as_foe_is_in_its_way_i
         ":j_1_0": [("d_0", "", "1", "1", "", "G", "l", 0.0)],
     }
     api.lane.internal_foes = {":j_1_0": [":j_0_0"]}  # the turn names the straight lane only
+    api.lane.shapes = {":j_1_0": [(8.0, -10.0), (8.0, -3.0)]}  # by its lane, short of the way
     api.lane.vehicles = {":j_1_0": ["turning"]}
+    api.vehicle.lane_positions = {"turning": 7.0}  # at its end (where the body is: below)
     api.vehicle.positions = {"turning": (8.0, 1.5)}  # its front 1.5 m from the ego's way
     (foe,) = JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)
     assert foe.distance == 0.0 and foe.speed == 0.0 and foe.ego_exit_distance == 12.0
@@ -135,6 +137,12 @@ def test_a_vehicle_standing_on_a_lane_that_names_the_egos_as_foe_is_in_its_way_i
     api.vehicle.angles = {"turning": 90.0}  # beside it, heading the same way
     assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
     api.vehicle.positions = {"turning": (8.0, 1.5)}
+    assert len(JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)) == 1
+    # by its lane it stands across the way (a truck starting a U-turn on São Paulo's export,
+    # its body judged clear by three points of it): in the way
+    api.lane.shapes = {":j_1_0": [(8.0, -10.0), (8.0, 10.0)]}
+    api.vehicle.lane_positions = {"turning": 10.5}
+    api.vehicle.positions = {"turning": (8.0, 30.0)}
     assert len(JunctionFoes(api).inside("a_0", ":j_0_0", 12.0)) == 1
     api.lane.vehicles = {}
     assert JunctionFoes(api).inside("a_0", ":j_0_0", 12.0) == ()
