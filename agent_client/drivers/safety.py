@@ -63,6 +63,8 @@ CLEARING_AT_MOST = 3.0
 MOVE_OFF = 1.0
 """m/s²: the acceleration the layer moves a needlessly standing ego off with, at least."""
 TOLERANCE = 1e-6
+BISECTIONS = 40
+"""Halvings of an acceleration interval (10 m/s² wide: to 1e-11 m/s²)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -191,15 +193,8 @@ class SafetyLayer:
         stop = self._highest(stop_margin)
         if stop_margin(stop) >= -TOLERANCE:
             options.append(stop)
-        if reaches(CLEARING_AT_MOST) >= 0.0:
-            low, high = acceleration, CLEARING_AT_MOST
-            for _ in range(40):
-                mid = 0.5 * (low + high)
-                if reaches(mid) >= 0.0:
-                    high = mid
-                else:
-                    low = mid
-            options.append(high)
+        if reaches(CLEARING_AT_MOST) >= 0.0:  # the least acceleration that reaches it in time
+            options.append(_last_good(lambda a: reaches(a) >= 0.0, CLEARING_AT_MOST, acceleration))
         if not options:
             return CLEARING_AT_MOST  # neither: the nearer it gets, the sooner it is across
         return min(options, key=lambda a: abs(a - acceleration))
@@ -211,17 +206,21 @@ class SafetyLayer:
         top = 10.0
         if margin(top) >= 0.0:
             return math.inf
-        low = self.lowest
-        if margin(low) < 0.0:
-            return low
-        high = top
-        for _ in range(40):
-            mid = 0.5 * (low + high)
-            if margin(mid) >= 0.0:
-                low = mid
-            else:
-                high = mid
-        return low
+        if margin(self.lowest) < 0.0:
+            return self.lowest
+        return _last_good(lambda a: margin(a) >= 0.0, self.lowest, top)
+
+
+def _last_good(good: Callable[[float], bool], inside: float, outside: float) -> float:
+    """Bisection between `inside` (where `good` holds) and `outside` (where it does not): the
+    point nearest `outside` found where it still holds."""
+    for _ in range(BISECTIONS):
+        middle = 0.5 * (inside + outside)
+        if good(middle):
+            inside = middle
+        else:
+            outside = middle
+    return inside
 
 
 def _needless_stop(obs: Observation) -> bool:
