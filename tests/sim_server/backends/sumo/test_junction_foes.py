@@ -103,6 +103,21 @@ class Api:
     junction: Junctions = field(default_factory=Junctions)
 
 
+def junction_links(
+    ego_length: float, other_length: float, turning: bool = False
+) -> dict[str, list[tuple[object, ...]]]:
+    """SUMO's links of a junction "j": the ego's straight connection a_0 -> b_0 by junction
+    lane :j_0_0 (`ego_length` m), and another, c_0 -> d_0 by :j_1_0 (`other_length` m; a left
+    turn on a permissive green if `turning`, else straight with priority)."""
+    state, direction = ("g", "l") if turning else ("G", "s")
+    return {
+        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", ego_length)],
+        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", state, direction, other_length)],
+        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
+        ":j_1_0": [("d_0", "", "1", "1", "", "G", direction, 0.0)],
+    }
+
+
 def test_lanes_sumo_does_not_link_have_no_foes() -> None:
     api = Api()
     api.lane.links = {"a_0": [("b_0", ":j_0_0", "1", "1", "", "G", "s", 10.0)]}
@@ -118,12 +133,7 @@ def test_a_vehicle_standing_on_a_lane_that_names_the_egos_as_foe_is_in_its_way_i
     way only where its body is on the ego's way (a waiting point misplaced on a joined
     cluster), not where it waits clear of it."""
     api = Api()
-    api.lane.links = {
-        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 10.0)],
-        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", "g", "l", 10.0)],
-        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
-        ":j_1_0": [("d_0", "", "1", "1", "", "G", "l", 0.0)],
-    }
+    api.lane.links = junction_links(10.0, 10.0, turning=True)
     api.lane.internal_foes = {":j_1_0": [":j_0_0"]}  # the turn names the straight lane only
     api.lane.shapes = {":j_1_0": [(8.0, -10.0), (8.0, -3.0)]}  # by its lane, short of the way
     api.lane.vehicles = {":j_1_0": ["turning"]}
@@ -150,12 +160,7 @@ def test_a_vehicle_standing_on_a_lane_that_names_the_egos_as_foe_is_in_its_way_i
 
 def test_inside_a_junction_the_ego_stops_short_of_a_vehicle_standing_on_its_way() -> None:
     api = Api()
-    api.lane.links = {
-        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 20.0)],
-        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", "g", "l", 10.0)],
-        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
-        ":j_1_0": [("d_0", "", "1", "1", "", "G", "l", 0.0)],
-    }
+    api.lane.links = junction_links(20.0, 10.0, turning=True)
     api.lane.internal_foes = {":j_1_0": [":j_0_0"]}
     api.lane.vehicles = {":j_1_0": ["turning"]}
     api.vehicle.positions = {"turning": (14.0, 1.5)}  # heading north, its rear across the way
@@ -174,12 +179,7 @@ def test_a_crossing_vehicle_is_a_foe_until_its_rear_has_left_the_egos_way() -> N
     its waiting point, which meet only the lane after it) holds no foe unless a car's body
     is on the ego's way (Greenville: IDM + MOBIL stood before such a turn for three cycles)."""
     api = Api()
-    api.lane.links = {
-        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 20.0)],
-        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", "G", "s", 20.0)],
-        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
-        ":j_1_0": [("d_0", "", "1", "1", "", "G", "s", 0.0)],
-    }
+    api.lane.links = junction_links(20.0, 20.0)
     api.lane.shapes = {":j_1_0": [(10.0, -10.0), (10.0, 10.0)]}  # northwards across x = 10
     api.lane.internal_foes = {":j_0_0": [":j_1_0"], ":j_1_0": [":j_0_0"]}
     api.lane.vehicles = {":j_1_0": ["crossing"]}
@@ -209,12 +209,7 @@ def test_a_crossing_vehicle_whose_front_has_driven_on_is_a_foe_while_its_rear_is
     """SUMO lists a vehicle on the lane its front is on: a truck whose front has left the
     crossing lane (which ends right after the ego's way) still has its rear across it."""
     api = Api()
-    api.lane.links = {
-        "a_0": [("b_0", ":j_0_0", "1", "1", ":j_0_0", "G", "s", 20.0)],
-        "c_0": [("d_0", ":j_1_0", "0", "1", ":j_1_0", "G", "s", 13.0)],
-        ":j_0_0": [("b_0", "", "1", "1", "", "G", "s", 0.0)],
-        ":j_1_0": [("d_0", "", "1", "1", "", "G", "s", 0.0)],
-    }
+    api.lane.links = junction_links(20.0, 13.0)
     api.lane.shapes = {":j_1_0": [(10.0, -10.0), (10.0, 3.0)]}  # ends 3 m past the ego's way
     api.lane.internal_foes = {":j_0_0": [":j_1_0"], ":j_1_0": [":j_0_0"]}
     api.lane.vehicles = {"d_0": ["truck"]}
