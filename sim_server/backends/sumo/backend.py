@@ -1388,7 +1388,10 @@ class SumoBackend(Backend):
         inside that comes across its way, nor of one on its fresh green too fast to stop before
         their ways meet (SUMO's drivers starting on their green do not wait for it, and
         netconvert's programmes have no all-red time: Greenville and `urban`, collisions); those
-        that can stop wait for it (waiting for them, it stood through a cycle on Greenville)."""
+        that can stop wait for it (waiting for them, it stood through a cycle on Greenville).
+        Past the waiting point nothing is left to wait at: the end of its lane is the
+        junction's exit, beyond the ways it crosses, and an ego braking for it stood across a
+        car starting on its green (Greenville, IDM + MOBIL, a collision): it clears."""
         lanes = self._api.lane
         links = lanes.getLinks(lane_id)
         if not links or not ego.approach_lane:
@@ -1405,6 +1408,8 @@ class SumoBackend(Backend):
                 episode.junction_foes = JunctionFoes(self._api)
             junction = episode.junction_foes
             via, ego_exit = str(links[0][4]), to_junction + links[0][7]
+            if not junction.waits_inside(lane_id):
+                return ROAD_RANGE  # past its waiting point: stopping would stand in the way
             inside = junction.inside(ego.approach_lane, via, ego_exit) if via else ()
             coming = foes + junction.of(ego.approach_lane, str(links[0][0]), ego_exit)
             fast = tuple(f for f in coming if f.speed**2 > 2.0 * FOE_DECELERATION * f.distance)

@@ -47,14 +47,25 @@ SMALL_CITY: dict[str, OptionValue] = {
 Act = Callable[[Observation], tuple[float, int]]
 
 
-def write_crossing(folder: Path, junction_before: float = 0.0) -> Path:
+def write_crossing(folder: Path, junction_before: float = 0.0, signalised: bool = False) -> Path:
     """A side street crossing a busy main road (600 veh/h each way) at a junction where it
     gives way; the ego's route ``across`` crosses, ``left`` turns left off the main road across
     the oncoming stream. With `junction_before` (m), the side street
     meets a lane of its own there, where it has priority, that far before the main road (the
     edge between the two junctions a few metres long, as in netconvert's joined clusters).
+    `signalised`: a traffic light ``j`` at the crossing (its links: 0-1 from the east, 2-4
+    from the south, 5-6 from the west, 6 the left turn) and no traffic but the ego's.
     Returns the .sumocfg."""
-    name = "y" if junction_before else "x"
+    name = "t" if signalised else "y" if junction_before else "x"
+    control = "traffic_light" if signalised else "priority"
+    flows = (
+        ""
+        if signalised
+        else (
+            '<flow id="e" route="east" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
+            '<flow id="w" route="west" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
+        )
+    )
     before = junction_before > 0.0
     side = (
         f'<node id="k" x="300" y="{-junction_before}" type="priority"/>'
@@ -64,7 +75,7 @@ def write_crossing(folder: Path, junction_before: float = 0.0) -> Path:
     )
     (folder / f"{name}.nod.xml").write_text(
         '<nodes><node id="w" x="0" y="0"/><node id="e" x="600" y="0"/>'
-        f'<node id="j" x="300" y="0" type="priority"/>{side}'
+        f'<node id="j" x="300" y="0" type="{control}"/>{side}'
         '<node id="s" x="300" y="-200"/><node id="n" x="300" y="200"/></nodes>\n'
     )
     approach = (
@@ -94,8 +105,7 @@ def write_crossing(folder: Path, junction_before: float = 0.0) -> Path:
     (folder / f"{name}.rou.xml").write_text(
         '<routes><route id="east" edges="we je"/><route id="west" edges="ew jw"/>'
         f'<route id="across" edges="{across}"/><route id="left" edges="we jn"/>'
-        '<flow id="e" route="east" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
-        '<flow id="w" route="west" begin="0" end="3600" vehsPerHour="600" departSpeed="max"/>'
+        f"{flows}"
         "</routes>\n"
     )
     config = folder / f"{name}.sumocfg"
@@ -113,7 +123,10 @@ def backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
     crossing = CustomScenario("crossing", write_crossing(folder), "across")
     after = CustomScenario("crossing_after", write_crossing(folder, junction_before=14.0), "across")
     left = CustomScenario("crossing_left", write_crossing(folder), "left")
-    sumo = SumoBackend(cache_dir=tmp_path_factory.mktemp("city"), custom=(crossing, after, left))
+    lights = CustomScenario("lights_left", write_crossing(folder, signalised=True), "left")
+    sumo = SumoBackend(
+        cache_dir=tmp_path_factory.mktemp("city"), custom=(crossing, after, left, lights)
+    )
     yield sumo
     sumo.close()
 
@@ -271,6 +284,36 @@ def test_a_left_turn_clearing_on_its_red_gives_way_to_an_oncoming_car_too_fast_t
     obs = backend.reset("urban", 300013, dict(info.options))
     while not (obs.terminated or obs.truncated):
         obs = backend.step(obs.seq + 1, *driver.act(obs))
+    assert obs.reason == EndReason.END_OF_ROAD, obs.reason
+
+
+def test_a_left_turn_past_its_waiting_point_clears_the_junction_when_its_light_turns_red(
+    backend: SumoBackend,
+) -> None:
+    """The ego crawls (3 m/s) through a left turn; past its waiting point its light turns red
+    and the oncoming car that stood at its own red line starts on its fresh green. Nothing is
+    left to wait at: the end of the ego's junction lane is the junction's exit, beyond the way
+    it crosses, and braking for it would stand the ego across the oncoming car (Greenville, IDM
+    + MOBIL: a collision). No stop line is reported there; the oncoming car waits for it."""
+    info = {s.name: s for s in backend.scenarios()}["lights_left"]
+    obs = backend.reset("lights_left", 0, dict(info.options))
+    api = backend._api  # the lights and the oncoming car of the test's own
+    api.trafficlight.setRedYellowGreenState("j", "rrrrrGG")  # the ego's way green, theirs red
+    api.vehicle.add("oncoming", "west", departPos="100", departSpeed="10")
+    switched, past = False, []
+    while not (obs.terminated or obs.truncated):
+        lane = api.vehicle.getLaneID("ego")
+        waits_ahead = any(str(link[4]).startswith(":") for link in api.lane.getLinks(lane))
+        if lane.startswith(":j") and not waits_ahead:  # past the waiting point
+            if switched:
+                assert obs.road is not None
+                past.append(obs.road.stop_line)
+            else:
+                api.trafficlight.setRedYellowGreenState("j", "GGrrrrr")  # the ego's turns red
+                switched = True
+        crawl = max(-3.0, min(1.0, 3.0 - obs.ego.speed))
+        obs = backend.step(obs.seq + 1, crawl, 0)
+    assert len(past) > 10 and all(line == ROAD_RANGE for line in past), past
     assert obs.reason == EndReason.END_OF_ROAD, obs.reason
 
 
