@@ -143,15 +143,20 @@ class LaneChoice:
         return self._own_mask(obs)
 
     def _own_mask(self, obs: Observation) -> np.ndarray:
-        """Keep / left / right as the policy's own choices."""
+        """Keep / left / right as the policy's own choices. Near the end of a lane the route
+        must leave (`route_side`), the change towards the route is the only choice with the
+        route's masks; without them it is one choice among the others, offered at every
+        decision and whatever the visible gap (the simulator refuses an unsafe one), as IDM +
+        MOBIL asks it: a policy that may ask only once a second finds a tenth of the gaps, and
+        the safety layer asking for it in between counted against a policy that had no say."""
         ego = obs.ego
         free, due = ego.changing_lane == 0, self.due(obs)
-        route = route_side(obs) if self.route_masks else 0
-        if free and route and 0 <= ego.lane + route < ego.lane_count:
+        route = route_side(obs)
+        if self.route_masks and free and route and 0 <= ego.lane + route < ego.lane_count:
             return np.array([False, route == 1, route == -1])  # the route's change, or nothing
         keep_route = self.route_masks
-        left = free and due and ego.lane + 1 < ego.lane_count
-        right = free and due and ego.lane > 0
+        left = free and (due or route == 1) and ego.lane + 1 < ego.lane_count
+        right = free and (due or route == -1) and ego.lane > 0
         left = left and not (keep_route and leaves_route(obs, 1))
         right = right and not (keep_route and leaves_route(obs, -1))
         if self.gap_rule:

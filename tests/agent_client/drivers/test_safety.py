@@ -119,6 +119,22 @@ def test_a_lane_end_about_to_be_missed_gets_the_change_the_route_needs() -> None
     assert not LAYER.apply(changing, 0.0, 0)[2].lane_change  # a change is under way
 
 
+@pytest.mark.parametrize(("right_lane_end", "refused"), [(110.0, True), (200.0, False)])
+def test_a_change_into_a_lane_that_ends_about_now_is_not_made(
+    right_lane_end: float, refused: bool
+) -> None:
+    """At 33 m/s in a lane that leads on, beside an acceleration lane ending 110 m ahead (less
+    than 4 s at its speed): a change right is kept from being made, counted; one 200 m before
+    its end, and one to the left, are the policy's to make."""
+    beside = Road(ROAD_RANGE, 0, ROAD_RANGE, right_lane_end)
+    obs = observation(33.0, road=beside, lane=1, lanes=3)
+    _, lane, override = LAYER.apply(obs, 0.0, -1)
+    assert (lane, override.lane_change, override.rule) == (
+        (0, True, "lane_end") if refused else (-1, False, "")
+    )
+    assert LAYER.apply(obs, 0.0, 1)[1:] == (1, NONE)
+
+
 def test_the_episode_counts_the_layers_decisions() -> None:
     first = observation(10.0)
     moved = replace(first, seq=6, time=first.time + 0.1)

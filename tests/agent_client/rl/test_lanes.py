@@ -151,6 +151,21 @@ def test_without_the_routes_masks_the_policy_decides_its_mandatory_changes() -> 
     assert LaneChoice(3, route_masks=False).mask(obs).tolist() == [True, True, False]
 
 
+@pytest.mark.parametrize(("lane_end", "offered"), [(230.0, True), (250.0, False)])
+def test_without_the_routes_masks_the_routes_change_is_offered_at_every_decision(
+    lane_end: float, offered: bool
+) -> None:
+    """Between two lane decisions, within 12 s of the end of the lane the route must leave
+    (240 m at 20 m/s), the change towards the route may be asked, whatever the visible gap
+    (as IDM + MOBIL asks it at every decision); keep stays possible, the other side not;
+    farther, only keep."""
+    merging = Road(lane_end, 1, ROAD_RANGE, 0.0)
+    blocked = sides(left_leader=near(10.0, 20.0), right_leader=near(10.0, 20.0))
+    obs = make_observation(seq=3, ego=ego(1), neighbours=blocked, road=merging)
+    lanes = LaneChoice(3, every=10, gap_rule=True, route_masks=False)
+    assert lanes.mask(obs).tolist() == [True, offered, False]
+
+
 def test_with_the_reference_as_its_default_the_policy_may_follow_it_or_choose_its_own() -> None:
     """Four choices: the reference's change first, then keep / left / right of the policy's
     own, so that a policy cloned on the reference starts as the reference and leaves it only
