@@ -420,7 +420,7 @@ configs/cflc.toml spell them out."""
 
 INTEGRATED: dict[str, Any] = {
     "residual": "idm+mobil",
-    "residual_reach": 9.0,
+    "residual_reach": 4.0,
     "residual_shield": False,
     "residual_lanes": "default",
     "features": "drive",
@@ -432,13 +432,15 @@ INTEGRATED: dict[str, Any] = {
     "safety_layer_training": True,
     "override_penalty": 2.0,
     "reward_params": {"headway_sigma": 0.2},
+    LEARNER: {"deploy_tau": 0.001},
 }
 """The integrated driver over several scenarios (the built-in roads: `cflc`, `merge`, `exit`,
 `lanedrop`, `urban`): it decides its acceleration and every lane change itself, the route's
-mandatory ones included: its actor's output reaches the whole action range from the
-acceleration IDM + MOBIL wants (that acceleration where the output is 0: it starts from the
-reference and the action cost pulls it back there where nothing is to be gained), no fade-out
-where the drive is at stake, its own lane choices (learned Q-heads that start from IDM + MOBIL's
+mandatory ones included: its actor's output reaches ±4 m/s² from the acceleration IDM + MOBIL
+wants (that acceleration where the output is 0: it starts from the reference and the action
+cost pulls it back there where nothing is to be gained; ±4 and a slower average of the
+deployed actor are the settings the roads training converged with on 12-07: docs/results.md,
+"The integrated driver"), no fade-out where the drive is at stake, its own lane choices (learned Q-heads that start from IDM + MOBIL's
 choices by a margin, no lane masks of the route's); the safety layer overrides it only where
 the drive is at stake, in training too, counted and charged. It reads the stop line and the next
 light (features ``drive``), and converges only 1 % faster than IDM + MOBIL on the same seeds
