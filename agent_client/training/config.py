@@ -440,8 +440,9 @@ mandatory ones included: its actor's output reaches ±4 m/s² from the accelerat
 wants (that acceleration where the output is 0: it starts from the reference and the action
 cost pulls it back there where nothing is to be gained; ±4 and a slower average of the
 deployed actor are the settings the roads training converged with on 12-07: docs/results.md,
-"The integrated driver"), no fade-out where the drive is at stake, its own lane choices (learned Q-heads that start from IDM + MOBIL's
-choices by a margin, no lane masks of the route's); the safety layer overrides it only where
+"The integrated driver"), no fade-out where the drive is at stake, its own lane choices
+(learned Q-heads that start from IDM + MOBIL's choices by a margin, no lane masks of the
+route's); the safety layer overrides it only where
 the drive is at stake, in training too, counted and charged. It reads the stop line and the next
 light (features ``drive``), and converges only 1 % faster than IDM + MOBIL on the same seeds
 (docs/learner.md, "The integrated driver")."""
