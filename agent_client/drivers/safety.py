@@ -42,6 +42,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from agent_client.rl.lanes import away_from_route
 from protocol.messages import ROAD_RANGE, Observation, SignalState, road_ahead
 
 EMERGENCY_DECELERATION = 6.0
@@ -249,14 +250,8 @@ def _urgent_distance(obs: Observation, lanes: int) -> float:
 def _into_a_lane_end(obs: Observation, direction: int) -> bool:
     """Whether a change to `direction` (1 left, -1 right) moves away from the route into a lane
     that ends within the urgent distance of the changes it would then need."""
-    road = obs.road
-    if road is None:
-        return False
-    lane_end = road.left_lane_end if direction > 0 else road.right_lane_end
-    lanes_after = abs(road.lanes_to_change - direction)
-    if lane_end >= ROAD_RANGE or lanes_after <= abs(road.lanes_to_change):
-        return False
-    return lane_end <= _urgent_distance(obs, lanes_after)
+    away = away_from_route(obs, direction)
+    return away is not None and away[0] <= _urgent_distance(obs, away[1])
 
 
 def _route_side(obs: Observation) -> int:

@@ -179,17 +179,27 @@ def route_side(obs: Observation) -> int:
     return 1 if road.lanes_to_change > 0 else -1
 
 
-def leaves_route(obs: Observation, direction: int) -> bool:
-    """Whether a change to `direction` (1 left, -1 right) moves away from the route where the
-    lane it moves to ends within `ROUTE_KEEP_S` seconds per lane then to cross (`Road`,
-    protocol 1.6; a lane beside that leads on along the route is never such a change)."""
+def away_from_route(obs: Observation, direction: int) -> tuple[float, int] | None:
+    """For a change to `direction` (1 left, -1 right) that moves away from the route into a
+    lane that ends (`Road`, protocol 1.6): where that lane ends (m) and the lanes then to
+    cross; None for any other change (a lane beside that leads on along the route)."""
     road = obs.road
     if road is None:
-        return False
+        return None
     lane_end = road.left_lane_end if direction > 0 else road.right_lane_end
     lanes_after = abs(road.lanes_to_change - direction)
     if lane_end >= ROAD_RANGE or lanes_after <= abs(road.lanes_to_change):
+        return None
+    return lane_end, lanes_after
+
+
+def leaves_route(obs: Observation, direction: int) -> bool:
+    """Whether a change to `direction` moves away from the route where the lane it moves to
+    ends within `ROUTE_KEEP_S` seconds per lane then to cross (`away_from_route`)."""
+    away = away_from_route(obs, direction)
+    if away is None:
         return False
+    lane_end, lanes_after = away
     return lane_end <= max(obs.ego.speed, URGENT_MIN_SPEED) * ROUTE_KEEP_S * lanes_after
 
 
