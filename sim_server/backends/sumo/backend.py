@@ -101,6 +101,7 @@ from sim_server.backends.sumo.road import (
     carried,
     road_ahead,
     stop_line,
+    time_to_cover,
     too_close,
     yields_at,
 )
@@ -138,6 +139,11 @@ CEILING_WALL_S = 2.0
 """Longest wall-clock time (s) spent waiting for the leader-at-entry: the episode's last reply
 must come within any client's step deadline, whatever the network (a city of thousands of
 vehicles simulates far slower than real time would allow an hour of it)."""
+YELLOW_STATES = frozenset("yY")
+"""Link states of a yellow light."""
+WAITING_POINT_DECELERATION = 4.0
+"""m/s²: the hardest braking with which the ego stops at a waiting point it could not leave
+the junction from before its light turns red."""
 TURNED = frozenset("ru")
 """Link states of a light that has turned red against the vehicles still inside its junction
 (yellow is not enough: the oncoming stream drives on through its own yellow, and a left turn
@@ -1403,6 +1409,8 @@ class SumoBackend(Backend):
         speed = self._api.vehicle.getSpeed(ego.id)
         foes = self._priority_foes(episode, ego.id, ego.approach_lane, links, to_junction)
         limit = self._api.lane.getMaxSpeed(lane_id)
+        if own in YELLOW_STATES and self._stranded(episode, ego, lane_id, links, to_junction):
+            return max(to_junction, 0.0)
         if own in TURNED:  # its light has turned red: it clears, those that cannot wait first
             if episode.junction_foes is None:
                 episode.junction_foes = JunctionFoes(self._api)
@@ -1415,6 +1423,34 @@ class SumoBackend(Backend):
             fast = tuple(f for f in coming if f.speed**2 > 2.0 * FOE_DECELERATION * f.distance)
             return max(to_junction, 0.0) if too_close(inside + fast, speed, limit) else ROAD_RANGE
         return stop_line(links, to_junction, speed, limit, foes)
+
+    def _stranded(
+        self, episode: _Episode, ego: EgoState, lane_id: str, links: Any, to_junction: float
+    ) -> bool:
+        """Whether the ego, before the waiting point of a turn across oncoming traffic
+        (`lane_id`) and able to stop there, would not have left the junction (its rear past
+        the ways it crosses after the waiting point, accelerating at `CLEARING_ACCELERATION`)
+        before its yellow light turns red. It then waits there: netconvert's programmes have
+        no all-red time, so the crossing road's green starts with that red, and SUMO's drivers
+        on it do not wait for a car still inside that they judge they pass first (Greenville:
+        the ego left its waiting point at the end of the yellow and was hit 3 s after its red
+        by a car that had braked for its own red and drove on at its green). Standing there
+        it is clear of the crossing road's ways; it goes once they have passed, or with its
+        next green."""
+        if episode.signals is None or not ego.red_lights.passed:
+            return False
+        speed = self._api.vehicle.getSpeed(ego.id)
+        if speed * speed > 2.0 * WAITING_POINT_DECELERATION * max(to_junction, 0.0):
+            return False  # too late to stop there: it goes on
+        light = ego.red_lights.passed
+        index = episode.signals.link_index(light, ego.approach_lane, str(links[0][0]))
+        if index < 0:
+            return False
+        now = self._api.simulation.getTime()
+        yellow_left = episode.signals.switch_in(light, index, now)
+        to_clear = max(to_junction, 0.0) + float(links[0][7]) + VEHICLE_LENGTH
+        limit = self._api.lane.getMaxSpeed(lane_id)
+        return time_to_cover(to_clear, speed, limit) > yellow_left
 
     def _stop_at_waiting_point(
         self, episode: _Episode, ego: EgoState, links: Any, to_junction: float, speed: float

@@ -177,7 +177,7 @@ def too_close(foes: Sequence[Foe], speed: float, speed_limit: float) -> bool:
         if foe.distance <= 0.0:
             return True  # in the conflict area now
         to_clear = max(foe.ego_exit_distance + VEHICLE_LENGTH, 0.0)
-        clears = _time_to_cover(to_clear, speed, speed_limit)
+        clears = time_to_cover(to_clear, speed, speed_limit)
         leaving = min(speed_limit, math.sqrt(speed * speed + 2 * CLEARING_ACCELERATION * to_clear))
         left = foe.distance - foe.speed * clears  # the foe's front from the point by then
         closing = max(foe.speed - leaving, 0.0)
@@ -187,7 +187,7 @@ def too_close(foes: Sequence[Foe], speed: float, speed_limit: float) -> bool:
     return False
 
 
-def _time_to_cover(distance: float, speed: float, limit: float) -> float:
+def time_to_cover(distance: float, speed: float, limit: float) -> float:
     """Seconds to drive `distance` m from `speed`, accelerating at `CLEARING_ACCELERATION` up
     to `limit`."""
     a = CLEARING_ACCELERATION

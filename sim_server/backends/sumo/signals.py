@@ -73,6 +73,7 @@ class Programmes:
     def __init__(self, api: Any) -> None:
         self._api = api
         self._phases: dict[str, tuple[str, list[tuple[float, str]]]] = {}
+        self._indices: dict[tuple[str, str, str], int] = {}
 
     def phases(self, light: str) -> list[tuple[float, str]]:
         """(duration, state string) of each phase of `light`'s running programme."""
@@ -86,6 +87,23 @@ class Programmes:
             phases = [(p.duration, p.state) for p in logic.phases] if logic is not None else []
             known = self._phases[light] = (program, phases)
         return known[1]
+
+    def link_index(self, light: str, from_lane: str, to_lane: str) -> int:
+        """The index in `light`'s state of the connection `from_lane` -> `to_lane`; -1 where
+        the light does not control it."""
+        key = (light, from_lane, to_lane)
+        index = self._indices.get(key)
+        if index is None:
+            links = self._api.trafficlight.getControlledLinks(light)
+            index = self._indices[key] = next(
+                (
+                    k
+                    for k, connections in enumerate(links)
+                    if any(c[0] == from_lane and c[1] == to_lane for c in connections)
+                ),
+                -1,
+            )
+        return index
 
     def switch_in(self, light: str, index: int, now: float) -> float:
         """Seconds until the state of link `index` of `light` changes class (red, yellow,

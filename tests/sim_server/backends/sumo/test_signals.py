@@ -317,6 +317,58 @@ def test_a_left_turn_past_its_waiting_point_clears_the_junction_when_its_light_t
     assert obs.reason == EndReason.END_OF_ROAD, obs.reason
 
 
+@pytest.mark.parametrize(("yellow", "stops"), [(1.5, True), (30.0, False)])
+def test_a_left_turn_waits_at_its_waiting_point_when_it_cannot_clear_before_its_red(
+    backend: SumoBackend, yellow: float, stops: bool
+) -> None:
+    """The ego creeps (2 m/s) up to the waiting point of a left turn as its light turns yellow.
+    With 1.5 s of yellow left it could not leave the junction before its red, which starts the
+    crossing road's green (netconvert's programmes have no all-red time, and SUMO's drivers
+    there do not wait for a car inside that they judge they pass first: Greenville, a
+    collision): while the light is yellow the waiting point is its stop line. With 30 s left
+    it goes on."""
+    info = {s.name: s for s in backend.scenarios()}["lights_left"]
+    obs = backend.reset("lights_left", 0, dict(info.options))
+    api = backend._api  # the light's programme of the test's own
+    api.trafficlight.setRedYellowGreenState("j", "rrrrrGG")
+    lines, switched = [], False
+    while not (obs.terminated or obs.truncated):
+        lane = api.vehicle.getLaneID("ego")
+        waits_ahead = any(str(link[4]).startswith(":") for link in api.lane.getLinks(lane))
+        if lane.startswith(":j") and waits_ahead:  # before the waiting point
+            if not switched:
+                phases = [
+                    api.trafficlight.Phase(yellow, "rrrrryy"),
+                    api.trafficlight.Phase(60.0, "GGrrrrr"),
+                ]
+                api.trafficlight.setProgramLogic(
+                    "j", api.trafficlight.Logic("test", 0, 0, phases=phases)
+                )
+                api.trafficlight.setProgram("j", "test")
+                switched = True
+            elif api.trafficlight.getRedYellowGreenState("j")[6] == "y":
+                assert obs.road is not None
+                lines.append(api.lane.getLength(lane) - api.vehicle.getLanePosition("ego"))
+                lines.append(obs.road.stop_line)
+        if len(lines) > 40:
+            break
+        creep = max(-6.0, min(1.0, 2.0 - obs.ego.speed))
+        if obs.road is not None and obs.road.stop_line < ROAD_RANGE:
+            line = obs.road.stop_line
+            creep = min(creep, idm_acceleration(IDMParams(), obs.ego.speed, 2.0, line, 0.0))
+        obs = backend.step(obs.seq + 1, creep, 0)
+    assert switched
+    to_waiting_point, reported = lines[0::2], lines[1::2]
+    if stops:
+        assert len(reported) > 10, reported
+        assert all(abs(a - b) < 0.2 for a, b in zip(to_waiting_point, reported, strict=False)), (
+            list(zip(to_waiting_point, reported, strict=False))
+        )
+    else:
+        assert all(line == ROAD_RANGE for line in reported), reported
+        assert obs.reason == EndReason.END_OF_ROAD, obs.reason
+
+
 def test_a_car_turning_elsewhere_that_stands_half_in_the_junction_stays_the_leader(
     backend: SumoBackend,
 ) -> None:
