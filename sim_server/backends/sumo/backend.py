@@ -139,6 +139,8 @@ CEILING_WALL_S = 2.0
 """Longest wall-clock time (s) spent waiting for the leader-at-entry: the episode's last reply
 must come within any client's step deadline, whatever the network (a city of thousands of
 vehicles simulates far slower than real time would allow an hour of it)."""
+MAX_LIMIT_LANES = 20
+"""Bound on the lanes ahead whose speed limits are looked at."""
 YELLOW_STATES = frozenset("yY")
 """Link states of a yellow light."""
 WAITING_POINT_DECELERATION = 4.0
@@ -1266,7 +1268,10 @@ class SumoBackend(Backend):
             foes = self._priority_foes(episode, ego_id, lane_id, links, to_junction)
             at_light = abs(signal.distance - to_junction) <= SAME_LINE
             yellow_left = signal.switch if at_light else math.inf
-            line = stop_line(links, to_junction, speed, state.speed_limit, foes, yellow_left)
+            before = self._limit_before(lane_id, lane_position, onward, to_junction)
+            line = stop_line(
+                links, to_junction, speed, state.speed_limit, foes, yellow_left, before
+            )
             ego.give_way = ROAD_RANGE if not links or links[0][1] else max(to_junction, 0.0)
             ego.across = 0.0
             if links and 0.0 <= to_junction <= ACROSS_LOOK:
@@ -1290,7 +1295,14 @@ class SumoBackend(Backend):
         if episode.signals is not None:
             road = replace(
                 road,
-                stop_line=min(road.stop_line, signal_line(signal, speed)),
+                stop_line=min(
+                    road.stop_line,
+                    signal_line(
+                        signal,
+                        speed,
+                        self._limit_before(lane_id, lane_position, onward, signal.distance),
+                    ),
+                ),
                 signal_distance=signal.distance,
                 signal_state=signal.state,
                 signal_switch=signal.switch,
@@ -1423,6 +1435,28 @@ class SumoBackend(Backend):
             fast = tuple(f for f in coming if f.speed**2 > 2.0 * FOE_DECELERATION * f.distance)
             return max(to_junction, 0.0) if too_close(inside + fast, speed, limit) else ROAD_RANGE
         return stop_line(links, to_junction, speed, limit, foes)
+
+    def _limit_before(
+        self, lane_id: str, lane_position: float, onward: Any, distance: float
+    ) -> float:
+        """The lowest speed limit on the ego's way over the next `distance` m: its lane's and
+        those of the lanes after it on its route (`onward`: its best lanes' next lanes, its own
+        first; on a junction's lane, the lane it leads to) that begin within `distance`. SUMO
+        holds the ego to a lane's limit even with its checks off (at the ego's braking bound):
+        a light's yellow that the ego would reach in time at its speed it does not reach when
+        the limit beyond the junction before it is half as high (São Paulo: a red light)."""
+        lanes = self._api.lane
+        limit = lanes.getMaxSpeed(lane_id)
+        ahead = self._lane_length(lane_id) - lane_position
+        following = [str(lane) for lane in onward if lane != lane_id]
+        if not following:
+            following = [str(link[0]) for link in lanes.getLinks(lane_id)[:1]]
+        for lane in following[:MAX_LIMIT_LANES]:
+            if ahead >= distance:
+                break
+            limit = min(limit, lanes.getMaxSpeed(lane))
+            ahead += self._lane_length(lane)
+        return limit
 
     def _stranded(
         self, episode: _Episode, ego: EgoState, lane_id: str, links: Any, to_junction: float

@@ -134,12 +134,14 @@ def stop_line(
     speed_limit: float,
     foes: Sequence[Foe] = (),
     yellow_left: float = math.inf,
+    limit_before: float = math.inf,
 ) -> float:
     """Metres to where the ego must stop now: the end of its lane (`to_junction` m ahead) when
     the link to the next junction on its route (the first of `next_links`) is closed to it, else
     `ROAD_RANGE`. Closed: red or red-yellow; yellow where stopping needs no more than
     `YELLOW_DECELERATION`, or where the ego at its speed would not reach the line within the
-    `yellow_left` seconds before it turns red (then it must stop, braking harder); not open by
+    `yellow_left` seconds before it turns red (no faster than `limit_before`, the lowest speed
+    limit on its way to the line: then it must stop, braking harder); not open by
     SUMO's right of way (foes with priority approach, a stop sign not yet stopped at), or too
     close a foe (`foes`) for the ego to leave the conflict point from its speed at
     `CLEARING_ACCELERATION` (`too_close`). No links (a lane that ends, the end of the route):
@@ -151,7 +153,7 @@ def stop_line(
     room = max(to_junction, 0.0)
     if state == YELLOW:
         can_stop = speed * speed <= 2.0 * YELLOW_DECELERATION * room
-        closed = can_stop or room > speed * yellow_left
+        closed = can_stop or room > min(speed, limit_before) * yellow_left
     else:
         closed = state in CLOSED_STATES or not link[_OPEN] or too_close(foes, speed, speed_limit)
     return room if closed else ROAD_RANGE

@@ -19,6 +19,7 @@ definitions).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -131,16 +132,18 @@ def _state_class(state: str, index: int) -> SignalState:
     return STATE_OF.get(character, SignalState.OFF)
 
 
-def signal_line(signal: Signal, speed: float) -> float:
+def signal_line(signal: Signal, speed: float, limit_before: float = math.inf) -> float:
     """Metres to the stop line of the next traffic light where it closes the ego's way now:
     red; yellow where stopping needs no more than `YELLOW_DECELERATION` or the ego at its speed
-    would not reach the line before it turns red. `ROAD_RANGE` otherwise (also where the light
-    is beyond other junctions: `Road.stop_line` is then the nearer of the two)."""
+    (no faster than `limit_before`, the lowest speed limit on its way to the line, which SUMO
+    holds it to) would not reach the line before it turns red. `ROAD_RANGE` otherwise (also
+    where the light is beyond other junctions: `Road.stop_line` is then the nearer of the
+    two)."""
     if signal.state == SignalState.RED:
         return signal.distance
     if signal.state == SignalState.YELLOW:
-        room = signal.distance
-        if speed * speed <= 2.0 * YELLOW_DECELERATION * room or room > speed * signal.switch:
+        room, reach = signal.distance, min(speed, limit_before)
+        if speed * speed <= 2.0 * YELLOW_DECELERATION * room or room > reach * signal.switch:
             return room
     return ROAD_RANGE
 

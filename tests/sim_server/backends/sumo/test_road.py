@@ -11,9 +11,10 @@ from types import SimpleNamespace
 
 import pytest
 
-from protocol.messages import ROAD_RANGE, Road
+from protocol.messages import ROAD_RANGE, Road, SignalState
 from sim_server.backends.sumo.backend import SumoBackend
 from sim_server.backends.sumo.road import Foe, carried, road_ahead, stop_line, yields_at
+from sim_server.backends.sumo.signals import Signal, signal_line
 
 # (lane id, length, occupation, offset, allows continuation, next lanes)
 BEFORE_EXIT = (
@@ -90,6 +91,17 @@ def test_the_stop_line_is_the_lanes_end_where_the_way_is_closed() -> None:
     assert stop_line([link("y")], 42.0, 10.0, 14.0) == 42.0  # 10 m/s stops in 17 m at 3 m/s²
     assert stop_line([link("y")], 10.0, 20.0, 25.0) == ROAD_RANGE  # 20 m/s cannot: drives on
     assert stop_line([link("r", is_open=False)], -0.5, 1.0, 14.0) == 0.0  # at the line
+
+
+def test_a_yellow_light_is_reached_in_time_only_within_the_speed_limits_before_it() -> None:
+    """At 22 m/s, 52 m before a light with 3 s of yellow left (stopping would take 4.8 m/s²):
+    it reaches the line in time, unless the limit before it is 11 m/s, which SUMO holds it to
+    (São Paulo: a red light passed); then the light closes its way."""
+    yellow = Signal(51.6, SignalState.YELLOW, 3.0)
+    assert signal_line(yellow, 22.2) == ROAD_RANGE
+    assert signal_line(yellow, 22.2, limit_before=11.1) == 51.6
+    assert stop_line([link("y")], 51.6, 22.2, 22.2, yellow_left=3.0) == ROAD_RANGE
+    assert stop_line([link("y")], 51.6, 22.2, 22.2, yellow_left=3.0, limit_before=11.1) == 51.6
 
 
 def test_a_foe_with_priority_closes_the_way_while_the_ego_could_not_leave_before_it() -> None:
