@@ -50,6 +50,11 @@ CONFLICT_STEP = 0.5
 """m between the points of a junction lane tested against the ego's way."""
 MAX_CONFLICT_STEPS = 1_000
 """Bound on the points tested per junction lane."""
+OUTLINE_STEP = 0.5
+"""m at most between the points of a vehicle's outline tested against the ego's way."""
+LATERAL_MARGIN = 0.3
+"""m beyond half the ego's width within which a point of another vehicle's body counts as on
+the ego's way."""
 MAX_JUNCTION_LANES = 10_000
 """Bound on the lanes looked at to list one junction's inner lanes."""
 
@@ -281,17 +286,19 @@ class JunctionFoes:
 
     def _along_the_way(self, other: str, via: str) -> float | None:
         """m along the junction lane `via` to the first point of vehicle `other`'s body (its
-        front, middle or rear) that lies within the two vehicles' half widths of its centre
-        line; None where none does."""
+        outline, `OUTLINE_STEP` apart) that lies within half the ego's width and
+        `LATERAL_MARGIN` of its centre line; None where none does. The outline, not the
+        centre line widened by both half widths: a car standing across the ego's way at a
+        right angle, its front 1.6 m from the ego's centre line, is 0.7 m clear of the ego, and
+        the ego stood behind it while it waited for the ego (São Paulo, a jam)."""
         vehicle = self._api.vehicle
         x, y = vehicle.getPosition(other)
         heading = math.radians(vehicle.getAngle(other))
-        length = vehicle.getLength(other)
-        reach = 0.5 * (vehicle.getWidth(other) + EGO_WIDTH)
+        length, width = vehicle.getLength(other), vehicle.getWidth(other)
+        reach = 0.5 * EGO_WIDTH + LATERAL_MARGIN
         shape = self._shape(via)
         found: float | None = None
-        for back in (0.0, 0.5 * length, length):
-            point = (x - back * math.sin(heading), y - back * math.cos(heading))
+        for point in _outline(x, y, heading, length, width):
             distance, along = _projection(point, shape)
             if distance < reach and (found is None or along < found):
                 found = along
@@ -343,6 +350,29 @@ class JunctionFoes:
         if length is None:
             length = self._lengths[lane] = self._api.lane.getLength(lane)
         return length
+
+
+def _outline(
+    x: float, y: float, heading: float, length: float, width: float
+) -> list[tuple[float, float]]:
+    """Points `OUTLINE_STEP` apart (at most) around a vehicle's rectangle, its front centre at
+    (`x`, `y`), heading `heading` (radians, SUMO's: clockwise from north)."""
+    ahead_x, ahead_y = math.sin(heading), math.cos(heading)
+    left_x, left_y = -ahead_y, ahead_x
+    along = max(int(length / OUTLINE_STEP), 1)
+    across = max(int(width / OUTLINE_STEP), 1)
+    points: list[tuple[float, float]] = []
+    for k in range(along + 1):
+        back = length * k / along
+        for side in (-0.5, 0.5):
+            points.append((x - back * ahead_x + side * width * left_x,
+                           y - back * ahead_y + side * width * left_y))  # fmt: skip
+    for k in range(1, across):
+        side = k / across - 0.5
+        for back in (0.0, length):
+            points.append((x - back * ahead_x + side * width * left_x,
+                           y - back * ahead_y + side * width * left_y))  # fmt: skip
+    return points
 
 
 def _projection(

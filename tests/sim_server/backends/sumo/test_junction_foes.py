@@ -165,10 +165,27 @@ def test_inside_a_junction_the_ego_stops_short_of_a_vehicle_standing_on_its_way(
     api.lane.vehicles = {":j_1_0": ["turning"]}
     api.vehicle.positions = {"turning": (14.0, 1.5)}  # heading north, its rear across the way
     ahead = JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 4.0)
-    assert ahead == pytest.approx(14.0 - 4.0 - CLEARANCE)
+    assert ahead == pytest.approx(14.0 - 0.5 * 1.8 - 4.0 - CLEARANCE)  # to its side
     assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 15.0) == math.inf  # passed it
     api.vehicle.positions = {"turning": (14.0, 9.0)}  # clear of the way
     assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 4.0) == math.inf
+
+
+def test_a_vehicle_whose_outline_is_clear_of_the_egos_way_does_not_stand_on_it() -> None:
+    """A car standing at a right angle to the ego's way, its front 1.6 m from the ego's centre
+    line: its outline is 0.7 m clear of the ego (within both half widths of the line by its
+    centre, not by its body; São Paulo: the ego stood behind it, it waited for the ego)."""
+    api = Api()
+    api.lane.links = junction_links(20.0, 10.0, turning=True)
+    api.lane.internal_foes = {":j_1_0": [":j_0_0"]}
+    api.lane.vehicles = {":j_1_0": ["turning"]}
+    api.vehicle.positions = {"turning": (14.0, 1.6)}
+    api.vehicle.angles = {"turning": 180.0}  # heading south, its front 1.6 m short of the way
+    assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 4.0) == math.inf
+    api.vehicle.positions = {"turning": (14.0, 0.8)}  # 0.8 m: its front corners on the way
+    assert JunctionFoes(api).standing_ahead("a_0", ":j_0_0", 4.0) == pytest.approx(
+        14.0 - 0.9 - 4.0 - CLEARANCE
+    )
 
 
 def test_a_crossing_vehicle_is_a_foe_until_its_rear_has_left_the_egos_way() -> None:
