@@ -189,6 +189,11 @@ class TrainConfig:
     override_penalty: float = 1.0
     """Reward taken off a decision the safety layer overrode in training (the most one step of
     the `safe` reward's driving pays)."""
+    learn_own_decision: bool = False
+    """Where the safety layer overrode a decision in training, store the policy's own decision
+    (charged `override_penalty`) instead of the executed one: the penalty then falls on what
+    the policy chose, as post-posed shielding punishes the unsafe action (Alshiekh et al.
+    2018), where otherwise it falls on the layer's choice, which the actor never proposed."""
     speed_gain: float = 0.0
     """How much faster than the reference a converged policy must drive, as a share of the
     reference's speed on the same seeds (0: as fast; the integrated driver over the built-in

@@ -268,7 +268,7 @@ class Trainer:
         return LocalCollector(
             self.vec.envs, self.features, self.lanes, self.scale, self._choose,
             self._next_seed, self.agent.reset_noise, reset_options, safety,
-            config.override_penalty,
+            config.override_penalty, config.learn_own_decision,
         )  # fmt: skip
 
     def _lanes_and_routes(self) -> tuple[bool, bool]:

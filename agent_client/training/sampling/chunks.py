@@ -265,6 +265,7 @@ def chunk_collector(
         residual_lanes=config.residual_lanes,
         safety_layer=config.safety_layer_training,
         override_penalty=config.override_penalty,
+        learn_own_decision=config.learn_own_decision,
     )
     if config.simulators:
         specs = [spec] * config.simulators

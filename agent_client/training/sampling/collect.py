@@ -136,12 +136,15 @@ class LocalCollector:
         reset_options: Mapping[str, OptionValue] | None = None,
         safety: SafetyLayer | None = None,
         override_penalty: float = 0.0,
+        learn_own_decision: bool = False,
     ) -> None:
         self.envs = list(envs)
         self.safety = safety
         """Applied to every decision, as when the policy drives (None: none in training)."""
         self.override_penalty = override_penalty
         """Taken off the reward of a decision the safety layer overrode."""
+        self.learn_own_decision = learn_own_decision
+        """Store the policy's decision where the layer overrode it (else the executed one)."""
         self.features = features
         self.lanes = lanes
         self.scale = scale
@@ -168,11 +171,11 @@ class LocalCollector:
             command = self.lanes.command(int(lane), slot.obs)
             acceleration = self.scale.to_env(float(u), slot.obs)
             override = NO_OVERRIDE
-            if self.safety is not None:  # the executed action is the one learned from
+            if self.safety is not None:  # the executed action is learned from, or the own
                 acceleration, command, override = self.safety.apply(slot.obs, acceleration, command)
-                if override.acceleration:
+                if override.acceleration and not self.learn_own_decision:
                     u = self.scale.to_policy(acceleration, slot.obs)
-                if override.lane_change:
+                if override.lane_change and not self.learn_own_decision:
                     lane = self.lanes.index_of(command, slot.obs)
             self.envs[slot.env_index].send_command(acceleration, command)
             self._sent[slot.env_index] = (float(u), int(lane), override)

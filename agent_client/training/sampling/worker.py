@@ -80,6 +80,9 @@ class WorkerSpec:
     (`TrainConfig.safety_layer_training`)."""
     override_penalty: float = 0.0
     """Taken off the reward of a decision the safety layer overrode."""
+    learn_own_decision: bool = False
+    """Store the policy's own decision where the layer overrode it
+    (`TrainConfig.learn_own_decision`)."""
 
 
 @dataclass(frozen=True)
@@ -178,6 +181,7 @@ class SamplingWorker:
         self.local = LocalCollector(
             [self.env], features, lanes, scale, self.exploration, self._next_seed,
             self._episode_started, spec.reset_options, safety, spec.override_penalty,
+            spec.learn_own_decision,
         )  # fmt: skip
         self._failures_in_a_row = 0
 
