@@ -1468,10 +1468,14 @@ class SumoBackend(Backend):
         no all-red time, so the crossing road's green starts with that red, and SUMO's drivers
         on it do not wait for a car still inside that they judge they pass first (Greenville:
         the ego left its waiting point at the end of the yellow and was hit 3 s after its red
-        by a car that had braked for its own red and drove on at its green). Standing there
-        it is clear of the crossing road's ways; it goes once they have passed, or with its
-        next green."""
-        if episode.signals is None or not ego.red_lights.passed:
+        by a car that had braked for its own red and drove on at its green). Only where such a
+        car drives up to a way the ego crosses after the waiting point
+        (`JunctionFoes.driving_up`): cars that stand in a queue at their red start slowly and
+        see the ego inside, and an ego waiting for them in a junction of `DRT`'s joined
+        clusters stood there until the trip jammed. Standing there it is clear of the crossing
+        road's ways; it goes once they have passed, or with its next green."""
+        after = str(links[0][4])  # the junction lane after the waiting point
+        if episode.signals is None or not ego.red_lights.passed or not after.startswith(":"):
             return False
         speed = self._api.vehicle.getSpeed(ego.id)
         if speed * speed > 2.0 * WAITING_POINT_DECELERATION * max(to_junction, 0.0):
@@ -1482,9 +1486,14 @@ class SumoBackend(Backend):
             return False
         now = self._api.simulation.getTime()
         yellow_left = episode.signals.switch_in(light, index, now)
-        to_clear = max(to_junction, 0.0) + float(links[0][7]) + VEHICLE_LENGTH
+        to_clear = max(to_junction, 0.0) + self._inside_length(after) + VEHICLE_LENGTH
         limit = self._api.lane.getMaxSpeed(lane_id)
-        return time_to_cover(to_clear, speed, limit) > yellow_left
+        clearing = time_to_cover(to_clear, speed, limit)
+        if clearing <= yellow_left:
+            return False
+        if episode.junction_foes is None:
+            episode.junction_foes = JunctionFoes(self._api)
+        return episode.junction_foes.driving_up(ego.approach_lane, after, clearing)
 
     def _stop_at_waiting_point(
         self, episode: _Episode, ego: EgoState, links: Any, to_junction: float, speed: float

@@ -50,6 +50,9 @@ CONFLICT_STEP = 0.5
 """m between the points of a junction lane tested against the ego's way."""
 MAX_CONFLICT_STEPS = 1_000
 """Bound on the points tested per junction lane."""
+DRIVING_UP_SPEED = 3.0
+"""m/s: a vehicle at least this fast towards a junction drives up to it (one standing in a
+queue, or creeping up to it, starts slowly)."""
 OUTLINE_STEP = 0.5
 """m at most between the points of a vehicle's outline tested against the ego's way."""
 LATERAL_MARGIN = 0.3
@@ -74,6 +77,7 @@ class JunctionFoes:
         self._inside_lanes: dict[str, tuple[str, ...]] = {}
         self._conflicts: dict[tuple[str, str], tuple[float, float] | None] = {}
         self._onward_lanes: dict[str, tuple[str, ...]] = {}
+        self._approach_lanes: dict[str, tuple[str, ...]] = {}
 
     def of(self, from_lane: str, to_lane: str, ego_exit: float) -> tuple[Foe, ...]:
         """The foes of the connection `from_lane` -> `to_lane`; `ego_exit` is the ego's
@@ -137,6 +141,42 @@ class JunctionFoes:
         for lane in named_by:
             found += self._named_foes(lane, via, ego_exit)
         return tuple(found)
+
+    def driving_up(self, from_lane: str, via: str, within: float) -> bool:
+        """Whether a vehicle drives (`DRIVING_UP_SPEED` at least) towards the junction on a
+        lane whose junction lane crosses `via` (taken from `from_lane`) and would be there
+        within `within` seconds at its speed now: one that SUMO lets start at its green
+        without waiting for a car inside (`SumoBackend._stranded`)."""
+        lanes = self._crossing.get(via)
+        if lanes is None:
+            lanes = self._crossing[via] = self._crossing_lanes(from_lane, via)
+        lane_api, vehicle = self._api.lane, self._api.vehicle
+        junction = self._api.edge.getToJunction(lane_api.getEdgeID(from_lane))
+        for crossing in lanes[0]:
+            for approach in self._approaches(junction, crossing):
+                length = self._length(approach)
+                for other in lane_api.getLastStepVehicleIDs(approach):
+                    speed = vehicle.getSpeed(other)
+                    to_junction = length - vehicle.getLanePosition(other)
+                    if speed >= DRIVING_UP_SPEED and to_junction <= speed * within:
+                        return True
+        return False
+
+    def _approaches(self, junction: str, lane: str) -> tuple[str, ...]:
+        """The lanes of `junction`'s incoming roads whose connection goes through its junction
+        lane `lane`."""
+        approaches = self._approach_lanes.get(lane)
+        if approaches is None:
+            lane_api = self._api.lane
+            approaches = self._approach_lanes[lane] = tuple(
+                approach
+                for edge in self._api.junction.getIncomingEdges(junction)
+                for approach in (
+                    f"{edge}_{index}" for index in range(self._api.edge.getLaneNumber(edge))
+                )
+                if any(link[4] == lane for link in lane_api.getLinks(approach))
+            )
+        return approaches
 
     def _crossing_foes(self, lane: str, via: str, ego_exit: float) -> list[Foe]:
         """The foes on junction lane `lane`, which crosses or merges with `via` (`inside`)."""

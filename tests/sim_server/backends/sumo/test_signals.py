@@ -317,19 +317,21 @@ def test_a_left_turn_past_its_waiting_point_clears_the_junction_when_its_light_t
     assert obs.reason == EndReason.END_OF_ROAD, obs.reason
 
 
-@pytest.mark.parametrize(("yellow", "stops"), [(1.5, True), (30.0, False)])
+@pytest.mark.parametrize(
+    ("yellow", "driving_up", "stops"), [(1.5, True, True), (1.5, False, False), (30.0, True, False)]
+)
 def test_a_left_turn_waits_at_its_waiting_point_when_it_cannot_clear_before_its_red(
-    backend: SumoBackend, yellow: float, stops: bool
+    backend: SumoBackend, yellow: float, driving_up: bool, stops: bool
 ) -> None:
-    """The ego creeps (2 m/s) up to the waiting point of a left turn as its light turns yellow.
-    With 1.5 s of yellow left it could not leave the junction before its red, which starts the
-    crossing road's green (netconvert's programmes have no all-red time, and SUMO's drivers
-    there do not wait for a car inside that they judge they pass first: Greenville, a
-    collision): while the light is yellow the waiting point is its stop line. With 30 s left
-    it goes on."""
+    """The ego creeps (2 m/s) up to the waiting point of a left turn as its light turns yellow
+    and the oncoming car's red. With 1.5 s of yellow left it could not leave the junction
+    before its red, which starts the oncoming car's green (netconvert's programmes have no
+    all-red time): where that car drives up at 10 m/s (SUMO's drivers do not wait for a car
+    inside that they judge they pass first: Greenville, a collision), the waiting point is the
+    ego's stop line while the light is yellow. With no car driving up, or 30 s left, it goes."""
     info = {s.name: s for s in backend.scenarios()}["lights_left"]
     obs = backend.reset("lights_left", 0, dict(info.options))
-    api = backend._api  # the light's programme of the test's own
+    api = backend._api  # the light's programme and the oncoming car of the test's own
     api.trafficlight.setRedYellowGreenState("j", "rrrrrGG")
     lines, switched = [], False
     while not (obs.terminated or obs.truncated):
@@ -345,8 +347,12 @@ def test_a_left_turn_waits_at_its_waiting_point_when_it_cannot_clear_before_its_
                     "j", api.trafficlight.Logic("test", 0, 0, phases=phases)
                 )
                 api.trafficlight.setProgram("j", "test")
+                if driving_up:
+                    api.vehicle.add("oncoming", "west", departPos="260", departSpeed="10")
                 switched = True
-            elif api.trafficlight.getRedYellowGreenState("j")[6] == "y":
+            elif api.trafficlight.getRedYellowGreenState("j")[6] == "y" and (
+                not driving_up or "oncoming" in api.vehicle.getIDList()
+            ):
                 assert obs.road is not None
                 lines.append(api.lane.getLength(lane) - api.vehicle.getLanePosition("ego"))
                 lines.append(obs.road.stop_line)
@@ -365,8 +371,7 @@ def test_a_left_turn_waits_at_its_waiting_point_when_it_cannot_clear_before_its_
             list(zip(to_waiting_point, reported, strict=False))
         )
     else:
-        assert all(line == ROAD_RANGE for line in reported), reported
-        assert obs.reason == EndReason.END_OF_ROAD, obs.reason
+        assert reported and all(line == ROAD_RANGE for line in reported), reported
 
 
 def test_a_car_turning_elsewhere_that_stands_half_in_the_junction_stays_the_leader(
