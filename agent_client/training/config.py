@@ -436,6 +436,7 @@ INTEGRATED: dict[str, Any] = {
     "speed_gain": 0.01,
     "safety_layer_training": True,
     "override_penalty": 2.0,
+    "learn_own_decision": True,
     "reward_params": {"headway_sigma": 0.2},
     LEARNER: {"deploy_tau": 0.001},
 }
@@ -448,8 +449,11 @@ deployed actor are the settings the roads training converged with on 12-07: docs
 "The integrated driver"), no fade-out where the drive is at stake, its own lane choices
 (learned Q-heads that start from IDM + MOBIL's choices by a margin, no lane masks of the
 route's); the safety layer overrides it only where
-the drive is at stake, in training too, counted and charged. It reads the stop line and the next
-light (features ``drive``), and converges only 1 % faster than IDM + MOBIL on the same seeds
+the drive is at stake, in training too, counted and charged to the policy's own decision
+(`learn_own_decision`: the roads training converged on 2 of 3 seeds so, 1 of 3 with the
+penalty on the layer's decision; docs/results.md, "The integrated driver"). It reads the
+stop line and the next light (features ``drive``), and converges only 1 % faster than IDM +
+MOBIL on the same seeds
 (docs/learner.md, "The integrated driver")."""
 
 
