@@ -57,6 +57,7 @@ from protocol.messages import (
     Route,
     Safety,
     ScenarioInfo,
+    SignalState,
     Traffic,
 )
 from sim_server.backends.base import Backend, Commands
@@ -1268,10 +1269,10 @@ class SumoBackend(Backend):
             foes = self._priority_foes(episode, ego_id, lane_id, links, to_junction)
             at_light = abs(signal.distance - to_junction) <= SAME_LINE
             yellow_left = signal.switch if at_light else math.inf
-            before = self._limit_before(lane_id, lane_position, onward, to_junction)
             line = stop_line(
-                links, to_junction, speed, state.speed_limit, foes, yellow_left, before
-            )
+                links, to_junction, speed, state.speed_limit, foes, yellow_left,
+                state.speed_limit,  # the light is at the end of this lane
+            )  # fmt: skip
             ego.give_way = ROAD_RANGE if not links or links[0][1] else max(to_junction, 0.0)
             ego.across = 0.0
             if links and 0.0 <= to_junction <= ACROSS_LOOK:
@@ -1300,7 +1301,9 @@ class SumoBackend(Backend):
                     signal_line(
                         signal,
                         speed,
-                        self._limit_before(lane_id, lane_position, onward, signal.distance),
+                        self._limit_before(lane_id, lane_position, onward, signal.distance)
+                        if signal.state == SignalState.YELLOW
+                        else math.inf,
                     ),
                 ),
                 signal_distance=signal.distance,
@@ -1439,44 +1442,54 @@ class SumoBackend(Backend):
     def _limit_before(
         self, lane_id: str, lane_position: float, onward: Any, distance: float
     ) -> float:
-        """The lowest speed limit on the ego's way over the next `distance` m: its lane's and
-        those of the lanes after it on its route (`onward`: its best lanes' next lanes, its own
-        first; on a junction's lane, the lane it leads to) that begin within `distance`. SUMO
-        holds the ego to a lane's limit even with its checks off (at the ego's braking bound):
-        a light's yellow that the ego would reach in time at its speed it does not reach when
-        the limit beyond the junction before it is half as high (São Paulo: a red light)."""
+        """The lowest speed limit on the ego's way to a stop line `distance` m ahead: its lane's
+        and those of the junction lanes and lanes after it on its route (`onward`: its best
+        lanes' next lanes, its own first; on a junction's lane, the lane it leads to) that begin
+        before the line. SUMO holds the ego to a lane's limit even with its checks off (at the
+        ego's braking bound): a light's yellow that the ego would reach in time at its speed it
+        does not reach when the limit beyond the junction before it is half as high (São
+        Paulo: a red light)."""
         lanes = self._api.lane
         limit = lanes.getMaxSpeed(lane_id)
-        ahead = self._lane_length(lane_id) - lane_position
+        ahead = self._lane_length(lane_id) - lane_position  # to the end of `previous`
         following = [str(lane) for lane in onward if lane != lane_id]
-        if not following:
+        if not following and lane_id.startswith(":"):
             following = [str(link[0]) for link in lanes.getLinks(lane_id)[:1]]
+        previous = lane_id
         for lane in following[:MAX_LIMIT_LANES]:
-            if ahead >= distance:
-                break
+            if ahead >= distance - SAME_LINE:
+                break  # the line is at the end of `previous`
+            via = next((str(link[4]) for link in lanes.getLinks(previous) if link[0] == lane), "")
+            if via:
+                limit = min(limit, lanes.getMaxSpeed(via))
+                ahead += self._inside_length(via)
             limit = min(limit, lanes.getMaxSpeed(lane))
             ahead += self._lane_length(lane)
+            previous = lane
         return limit
 
     def _stranded(
         self, episode: _Episode, ego: EgoState, lane_id: str, links: Any, to_junction: float
     ) -> bool:
-        """Whether the ego, before the waiting point of a turn across oncoming traffic
-        (`lane_id`) and able to stop there, would not have left the junction (its rear past
-        the ways it crosses after the waiting point, accelerating at `CLEARING_ACCELERATION`)
-        before its yellow light turns red. It then waits there: netconvert's programmes have
-        no all-red time, so the crossing road's green starts with that red, and SUMO's drivers
-        on it do not wait for a car still inside that they judge they pass first (Greenville:
-        the ego left its waiting point at the end of the yellow and was hit 3 s after its red
-        by a car that had braked for its own red and drove on at its green). Only where such a
-        car drives up to a way the ego crosses after the waiting point
-        (`JunctionFoes.driving_up`): cars that stand in a queue at their red start slowly and
-        see the ego inside, and an ego waiting for them in a junction of `DRT`'s joined
-        clusters stood there until the trip jammed. Standing there it is clear of the crossing
-        road's ways; it goes once they have passed, or with its next green."""
+        """Whether the ego, inside the junction before the waiting point of a turn across
+        oncoming traffic (`lane_id`) and able to stop there, would not have left the junction
+        (its rear past the ways it crosses after the waiting point, accelerating at
+        `CLEARING_ACCELERATION`) before its yellow light turns red, while a car drives up to
+        one of those ways (`JunctionFoes.driving_up`). It then waits there: netconvert's
+        programmes have no all-red time, so the crossing road's green starts with that red,
+        and SUMO's drivers on it do not wait for a car still inside that they judge they pass
+        first (Greenville: the ego left its waiting point at the end of the yellow and was hit
+        3 s after its red by a car that had braked for its own red and drove on at its green).
+        Cars that stand in a queue at their red start slowly and see the ego inside (an ego
+        waiting for them in a junction of `DRT`'s joined clusters stood there until the trip
+        jammed). Standing there it is clear of the crossing road's ways; it goes once they
+        have passed, or with its next green. Judged inside the junction only, under the light
+        it passed (`RedLightWatch.passed`)."""
         after = str(links[0][4])  # the junction lane after the waiting point
         if episode.signals is None or not ego.red_lights.passed or not after.startswith(":"):
             return False
+        if not self._api.vehicle.getLaneID(ego.id).startswith(":"):
+            return False  # judged inside the junction, under the light it passed
         speed = self._api.vehicle.getSpeed(ego.id)
         if speed * speed > 2.0 * WAITING_POINT_DECELERATION * max(to_junction, 0.0):
             return False  # too late to stop there: it goes on

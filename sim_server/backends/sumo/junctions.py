@@ -54,7 +54,8 @@ DRIVING_UP_SPEED = 3.0
 """m/s: a vehicle at least this fast towards a junction drives up to it (one standing in a
 queue, or creeping up to it, starts slowly)."""
 OUTLINE_STEP = 0.5
-"""m at most between the points of a vehicle's outline tested against the ego's way."""
+"""m between the points of a vehicle's outline tested against the ego's way (a little more
+where a side is not a whole number of steps long: 0.54 m on a 4.9 m car)."""
 LATERAL_MARGIN = 0.3
 """m beyond half the ego's width within which a point of another vehicle's body counts as on
 the ego's way."""
@@ -163,8 +164,9 @@ class JunctionFoes:
         return False
 
     def _approaches(self, junction: str, lane: str) -> tuple[str, ...]:
-        """The lanes of `junction`'s incoming roads whose connection goes through its junction
-        lane `lane`."""
+        """The lanes whose connection goes through `junction`'s junction lane `lane`: of its
+        incoming roads, and its own junction lanes up to a waiting point (libsumo lists its
+        internal edges among its incoming ones): a car there drives up to `lane` too."""
         approaches = self._approach_lanes.get(lane)
         if approaches is None:
             lane_api = self._api.lane
@@ -320,13 +322,13 @@ class JunctionFoes:
         return onward
 
     def _on_the_way(self, other: str, via: str) -> bool:
-        """Whether vehicle `other`'s body (its front, middle or rear) lies within the two
-        vehicles' half widths of the centre line of the junction lane `via`."""
+        """Whether vehicle `other`'s body lies on the ego's way along the junction lane `via`
+        (`_along_the_way`)."""
         return self._along_the_way(other, via) is not None
 
     def _along_the_way(self, other: str, via: str) -> float | None:
         """m along the junction lane `via` to the first point of vehicle `other`'s body (its
-        outline, `OUTLINE_STEP` apart) that lies within half the ego's width and
+        outline, about `OUTLINE_STEP` apart) that lies within half the ego's width and
         `LATERAL_MARGIN` of its centre line; None where none does. The outline, not the
         centre line widened by both half widths: a car standing across the ego's way at a
         right angle, its front 1.6 m from the ego's centre line, is 0.7 m clear of the ego, and
@@ -395,7 +397,7 @@ class JunctionFoes:
 def _outline(
     x: float, y: float, heading: float, length: float, width: float
 ) -> list[tuple[float, float]]:
-    """Points `OUTLINE_STEP` apart (at most) around a vehicle's rectangle, its front centre at
+    """Points about `OUTLINE_STEP` apart around a vehicle's rectangle, its front centre at
     (`x`, `y`), heading `heading` (radians, SUMO's: clockwise from north)."""
     ahead_x, ahead_y = math.sin(heading), math.cos(heading)
     left_x, left_y = -ahead_y, ahead_x
