@@ -183,9 +183,9 @@ class TrainConfig:
     safety_layer_training: bool = False
     """Train through the safety layer (`agent_client.drivers.safety`), as the policy drives
     when evaluated and deployed: exploration never runs a red light or into a vehicle it could
-    still avoid; the executed decision is the one learned from, and `override_penalty` is
-    taken off the reward of an overridden one, so that the policy learns not to need the
-    layer. (Episodes of many egos, ``egos`` > 1, are not shielded.)"""
+    still avoid; `override_penalty` is taken off the reward of an overridden decision, stored
+    as executed or as the policy's own (`learn_own_decision`), so that the policy learns not
+    to need the layer. (Episodes of many egos, ``egos`` > 1, are not shielded.)"""
     override_penalty: float = 1.0
     """Reward taken off a decision the safety layer overrode in training (the most one step of
     the `safe` reward's driving pays)."""
