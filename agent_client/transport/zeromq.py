@@ -166,14 +166,18 @@ class ZmqChannel(Channel):
 
     def _ensure_socket(self) -> zmq.Socket[bytes]:
         if self._socket is None:
+
+            def watch(socket: zmq.Socket[bytes]) -> None:  # before the handshake can happen
+                self._monitor = socket.get_monitor_socket(_UP | _LOST | _REFUSED | _FAILED)
+
             self._socket = connect_req(
                 self._context,
                 self.address,
                 self.routing_id,
                 self.credentials,
                 self.heartbeat_timeout_ms,
+                before_connect=watch,
             )
-            self._monitor = self._socket.get_monitor_socket(_UP | _LOST | _REFUSED | _FAILED)
             self._session_up, self._failed_handshakes = False, 0
         return self._socket
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Callable
 
 import zmq
 
@@ -82,11 +83,14 @@ def connect_req(
     routing_id: bytes | None = None,
     credentials: ClientCredentials | None = None,
     heartbeat_timeout_ms: int = HEARTBEAT_TIMEOUT_MS,
+    before_connect: Callable[[zmq.Socket[bytes]], None] | None = None,
 ) -> zmq.Socket[bytes]:
     """Connect a fresh REQ socket (one per attempt, as in the ZeroMQ guide's Lazy Pirate).
 
     Pass the same `routing_id` for every socket of one client so the server recognises it
-    after a reconnect; with `credentials` the socket is a CURVE client.
+    after a reconnect; with `credentials` the socket is a CURVE client. `before_connect` runs
+    on the socket just before it connects (attach a monitor there: on loopback a refused
+    handshake can be over before a monitor attached after the connect sees it).
     """
     endpoint = parse_endpoint(address)
     socket = context.socket(zmq.REQ)
@@ -104,6 +108,8 @@ def connect_req(
         secure_client_socket(socket, credentials)
     if endpoint.scheme == "tcp" and ":" in endpoint.host:
         socket.setsockopt(zmq.IPV6, 1)
+    if before_connect is not None:
+        before_connect(socket)
     socket.connect(str(endpoint))
     return socket
 
