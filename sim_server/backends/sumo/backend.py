@@ -147,6 +147,8 @@ YELLOW_STATES = frozenset("yY")
 WAITING_POINT_DECELERATION = 4.0
 """m/s²: the hardest braking with which the ego stops at a waiting point it could not leave
 the junction from before its light turns red."""
+WAITING_POINT_OVERSHOOT = 0.5
+"""m: an ego that stops no farther than this past its waiting point still stands at it."""
 TURNED = frozenset("ru")
 """Link states of a light that has turned red against the vehicles still inside its junction
 (yellow is not enough: the oncoming stream drives on through its own yellow, and a left turn
@@ -1370,20 +1372,27 @@ class SumoBackend(Backend):
         (id, gap less the ego's minGap) like `vehicle.getLeader`; None where none has. SUMO's
         leader search follows the ego's own way into the junction and may not report one
         turning elsewhere (the shipped roads policy drove into such a car, standing 2.5 m
-        ahead, on the São Paulo export once it had vanished from its observation)."""
+        ahead, on the São Paulo export once it had vanished from its observation). Each
+        connection's junction lanes are followed past a waiting point inside the junction: a
+        long vehicle turning across oncoming traffic may stand beyond it with its rear still
+        on the ego's lane (a 12 m truck on Greenville, which the policy drove into)."""
         lane_api, vehicle = self._api.lane, self._api.vehicle
         nearest: tuple[str, float] | None = None
         for link in lane_api.getLinks(lane_id):
-            via = str(link[4])
-            if not via:
-                continue
-            for other in lane_api.getLastStepVehicleIDs(via):
-                behind = vehicle.getLength(other) - vehicle.getLanePosition(other)
-                if behind <= 0.0:
-                    continue  # all of it inside the junction
-                gap = to_end - behind - ego_min_gap
-                if nearest is None or gap < nearest[1]:
-                    nearest = (other, gap)
+            inside, via = 0.0, str(link[4])  # m of the junction before `via`
+            for _ in range(MAX_FURTHER_LINKS):
+                if not via.startswith(":"):
+                    break
+                for other in lane_api.getLastStepVehicleIDs(via):
+                    behind = vehicle.getLength(other) - inside - vehicle.getLanePosition(other)
+                    if behind <= 0.0:
+                        continue  # all of it inside the junction
+                    gap = to_end - behind - ego_min_gap
+                    if nearest is None or gap < nearest[1]:
+                        nearest = (other, gap)
+                inside += self._lane_length(via)
+                onward = lane_api.getLinks(via)
+                via = str(onward[0][4]) if onward else ""
         return nearest
 
     def _traffic(self, episode: _Episode) -> Traffic | None:
@@ -1432,12 +1441,38 @@ class SumoBackend(Backend):
             junction = episode.junction_foes
             via, ego_exit = str(links[0][4]), to_junction + links[0][7]
             if not junction.waits_inside(lane_id):
-                return ROAD_RANGE  # past its waiting point: stopping would stand in the way
+                if not self._at_waiting_point(ego, lane_id, lane_position, speed):
+                    return ROAD_RANGE  # past its waiting point: stopping would stand in the way
+                via, ego_exit, line = lane_id, to_junction, 0.0  # it stands where it is
+            else:
+                line = max(to_junction, 0.0)  # at the waiting point
             inside = junction.inside(ego.approach_lane, via, ego_exit) if via else ()
             coming = foes + junction.of(ego.approach_lane, str(links[0][0]), ego_exit)
             fast = tuple(f for f in coming if f.speed**2 > 2.0 * FOE_DECELERATION * f.distance)
-            return max(to_junction, 0.0) if too_close(inside + fast, speed, limit) else ROAD_RANGE
+            return line if too_close(inside + fast, speed, limit) else ROAD_RANGE
         return stop_line(links, to_junction, speed, limit, foes)
+
+    def _at_waiting_point(
+        self, ego: EgoState, lane_id: str, lane_position: float, speed: float
+    ) -> bool:
+        """Whether the ego, on the junction lane `lane_id` just after the waiting point of
+        its turn, can stop within `WAITING_POINT_OVERSHOOT` of that point (at
+        `WAITING_POINT_DECELERATION`): it overshot it at a crawl, braking for a car that had
+        waited there for it and moved off, and stands where the waiting point would have held
+        it (Greenville: past it by a few centimetres at 0.1 m/s, the ego drove on into that
+        car crossing its way)."""
+        stops_at = lane_position + speed * speed / (2.0 * WAITING_POINT_DECELERATION)
+        if stops_at > WAITING_POINT_OVERSHOOT:
+            return False
+        lanes = self._api.lane
+        target = str(lanes.getLinks(lane_id)[0][0]) if lanes.getLinks(lane_id) else ""
+        first = next(
+            (str(link[4]) for link in lanes.getLinks(ego.approach_lane) if link[0] == target), ""
+        )
+        if not first or first == lane_id:
+            return False
+        onward = lanes.getLinks(first)
+        return bool(onward) and str(onward[0][4]) == lane_id
 
     def _limit_before(
         self, lane_id: str, lane_position: float, onward: Any, distance: float

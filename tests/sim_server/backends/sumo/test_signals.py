@@ -25,7 +25,7 @@ from protocol.messages import (
     SignalState,
 )
 from sim_server.backends.sumo.backend import SumoBackend
-from sim_server.backends.sumo.scenarios import CustomScenario, find_netconvert
+from sim_server.backends.sumo.scenarios import EGO_ID, CustomScenario, find_netconvert
 
 pytestmark = pytest.mark.sumo
 
@@ -123,9 +123,10 @@ def backend(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SumoBackend]:
     crossing = CustomScenario("crossing", write_crossing(folder), "across")
     after = CustomScenario("crossing_after", write_crossing(folder, junction_before=14.0), "across")
     left = CustomScenario("crossing_left", write_crossing(folder), "left")
+    east = CustomScenario("crossing_east", write_crossing(folder), "east")
     lights = CustomScenario("lights_left", write_crossing(folder, signalised=True), "left")
     sumo = SumoBackend(
-        cache_dir=tmp_path_factory.mktemp("city"), custom=(crossing, after, left, lights)
+        cache_dir=tmp_path_factory.mktemp("city"), custom=(crossing, after, left, east, lights)
     )
     yield sumo
     sumo.close()
@@ -317,6 +318,45 @@ def test_a_left_turn_past_its_waiting_point_clears_the_junction_when_its_light_t
     assert obs.reason == EndReason.END_OF_ROAD, obs.reason
 
 
+def test_a_left_turn_that_overshot_its_waiting_point_at_a_crawl_still_waits_there(
+    backend: SumoBackend,
+) -> None:
+    """The ego crawls (0.5 m/s) over the waiting point of a left turn; a few centimetres past
+    it, its light turns red and the oncoming car comes on its green at 12 m/s. Stopping
+    within half a metre of the waiting point it stands where the waiting point would have held
+    it (stop line 0) until the car has passed, then goes (Greenville: past it by a few
+    centimetres at 0.1 m/s, the ego drove on into a car crossing its way)."""
+    info = {s.name: s for s in backend.scenarios()}["lights_left"]
+    obs = backend.reset("lights_left", 0, {**info.options, "stop_speed": 0.0})
+    api = backend._api  # the lights and the oncoming car of the test's own
+    api.trafficlight.setRedYellowGreenState("j", "rrrrrGG")  # the ego's way green, theirs red
+    api.vehicle.add("oncoming", "west", departPos="285", departSpeed="0")
+    switched, lines = False, []
+    while not (obs.terminated or obs.truncated):
+        lane = api.vehicle.getLaneID("ego")
+        waits_ahead = any(str(link[4]).startswith(":") for link in api.lane.getLinks(lane))
+        there = "oncoming" in api.vehicle.getIDList()
+        if not switched and there:
+            api.vehicle.setSpeed("oncoming", 0.0)  # held at its red line
+            if lane.startswith(":j") and not waits_ahead:  # just past the waiting point
+                api.trafficlight.setRedYellowGreenState("j", "GGrrrrr")  # the ego's turns red
+                api.vehicle.setSpeedMode("oncoming", 0)
+                api.vehicle.setSpeed("oncoming", 12.0)
+                switched = True
+        elif switched and there and api.vehicle.getLaneID("oncoming") == "ew_0":
+            assert obs.road is not None
+            lines.append(obs.road.stop_line)
+        to_end = api.lane.getLength(lane) - api.vehicle.getLanePosition("ego")
+        target = 0.5 if lane.startswith(":j") or to_end < 8.0 else 5.0
+        action = max(-6.0, min(1.0, (target - obs.ego.speed) / 0.1))
+        if obs.road is not None and obs.road.stop_line < ROAD_RANGE:
+            line = obs.road.stop_line
+            action = min(action, idm_acceleration(IDMParams(), obs.ego.speed, target, line, 0.0))
+        obs = backend.step(obs.seq + 1, action, 0)
+    assert switched and len(lines) > 3 and all(line == 0.0 for line in lines), lines
+    assert obs.reason == EndReason.END_OF_ROAD, obs.reason
+
+
 @pytest.mark.parametrize(
     ("yellow", "driving_up", "stops"), [(1.5, True, True), (1.5, False, False), (30.0, True, False)]
 )
@@ -398,6 +438,42 @@ def test_a_car_turning_elsewhere_that_stands_half_in_the_junction_stays_the_lead
             break
     assert obs.reason != EndReason.COLLISION
     assert len(seen) > 100 and all(leader == "turner" for leader, _ in seen[-50:]), seen[-5:]
+    assert 0.0 < seen[-1][1] < 10.0  # standing behind it
+
+
+def test_a_long_vehicle_turning_past_its_waiting_point_stays_the_leader(
+    backend: SumoBackend,
+) -> None:
+    """A 12 m truck ahead of the ego on the main road turns left across the oncoming stream
+    and stops just past the waiting point inside the junction (SUMO's internal junction), its
+    rear still on the ego's lane. The ego, going straight on, must see it at the gap to its
+    rear (by its first junction lane alone the truck would be all inside: on Greenville it
+    vanished from the observation and the policy drove into it), and IDM + MOBIL stops
+    behind it."""
+    info = {s.name: s for s in backend.scenarios()}["crossing_east"]
+    obs = backend.reset("crossing_east", 0, dict(info.options))
+    api = backend._api  # a truck of the test's own, stopped where the test needs it
+    api.vehicletype.copy("DEFAULT_VEHTYPE", "truck")
+    api.vehicletype.setLength("truck", 12.0)
+    ego_position = api.vehicle.getLanePosition(EGO_ID)
+    api.vehicle.add(
+        "truck", "left", typeID="truck", departPos=str(ego_position + 70.0), departSpeed="0"
+    )
+    driver, seen, past = IDMMobilDriver(), [], False
+    for _ in range(1500):
+        if "truck" in api.vehicle.getIDList():
+            lane = api.vehicle.getLaneID("truck")
+            if lane.startswith(":"):
+                links = api.lane.getLinks(lane)
+                past = past or not (links and str(links[0][4]).startswith(":"))
+            if past and api.vehicle.getLanePosition("truck") > 0.5:
+                api.vehicle.setSpeed("truck", 0.0)  # stands just past its waiting point
+                seen.append((obs.neighbours.leader.id, obs.neighbours.leader.gap))
+        obs = backend.step(obs.seq + 1, *driver.act(obs))
+        if obs.terminated or obs.truncated or len(seen) > 150:
+            break
+    assert obs.reason != EndReason.COLLISION
+    assert len(seen) > 100 and all(leader == "truck" for leader, _ in seen[-50:]), seen[-5:]
     assert 0.0 < seen[-1][1] < 10.0  # standing behind it
 
 
