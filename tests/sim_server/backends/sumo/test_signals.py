@@ -468,13 +468,21 @@ def test_a_long_vehicle_turning_past_its_waiting_point_stays_the_leader(
                 past = past or not (links and str(links[0][4]).startswith(":"))
             if past and api.vehicle.getLanePosition("truck") > 0.5:
                 api.vehicle.setSpeed("truck", 0.0)  # stands just past its waiting point
-                seen.append((obs.neighbours.leader.id, obs.neighbours.leader.gap))
+                first = next(
+                    str(link[4]) for link in api.lane.getLinks("we_0") if link[0] == "jn_0"
+                )
+                behind = 12.0 - api.lane.getLength(first) - api.vehicle.getLanePosition("truck")
+                ego_front = api.vehicle.getLanePosition(EGO_ID)
+                bumpers = api.lane.getLength("we_0") - ego_front - behind
+                seen.append((obs.neighbours.leader.id, obs.neighbours.leader.gap, behind, bumpers))
         obs = backend.step(obs.seq + 1, *driver.act(obs))
         if obs.terminated or obs.truncated or len(seen) > 150:
             break
     assert obs.reason != EndReason.COLLISION
-    assert len(seen) > 100 and all(leader == "truck" for leader, _ in seen[-50:]), seen[-5:]
-    assert 0.0 < seen[-1][1] < 10.0  # standing behind it
+    assert len(seen) > 100 and all(behind > 5.0 for _, _, behind, _ in seen), seen[-1]  # on we
+    assert all(leader == "truck" for leader, *_ in seen[-50:]), seen[-5:]
+    _, gap, _, bumpers = seen[-1]
+    assert 0.0 < gap < 10.0 and abs(gap - bumpers) < 0.3, seen[-1]  # standing behind its rear
 
 
 def test_the_city_is_drawn_from_the_seed(backend: SumoBackend, tmp_path: Path) -> None:
