@@ -448,7 +448,7 @@ cost pulls it back there where nothing is to be gained; ±4 is the setting the r
 converged with on 12-07: docs/results.md, "The integrated driver"), a slow average of the
 deployed actor (`deploy_tau` 0.0002, a half-life of ~3,500 actor updates, some nine episodes:
 at 0.001 the evaluated policy changed between evaluations two episodes apart, and the roads
-training, which asks three passed in a row, converged on 2 of 3 seeds, on 3 of 3 at 0.0002),
+training, which asks three passed in a row, converged on 2 of 3 seeds, on 5 of 5 at 0.0002),
 no fade-out where the drive is at stake, its own lane choices
 (learned Q-heads that start from IDM + MOBIL's choices by a margin, no lane masks of the
 route's); the safety layer overrides it only where

@@ -167,7 +167,7 @@ def test_cflc_trains_the_integrated_driver_and_other_scenarios_with_the_defaults
     )
     assert recommended(["merge", "cf"]) == several  # as many episodes of each as one alone
     assert several.residual == "idm+mobil" and several.residual_reach == 4.0
-    assert several.learner.deploy_tau == 0.0002  # the roads training converged with (3 of 3)
+    assert several.learner.deploy_tau == 0.0002  # the roads training converged with (5 of 5)
     assert several.learn_own_decision and not cflc.learn_own_decision  # measured on the roads
     assert not several.residual_shield and several.residual_lanes == "default"
     assert not several.lane_route_masks and several.speed_gain > 0
