@@ -9,6 +9,7 @@ import math
 import subprocess
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -115,6 +116,12 @@ def write_crossing(folder: Path, junction_before: float = 0.0, signalised: bool 
         '<time><step-length value="0.1"/></time></configuration>\n'
     )
     return config
+
+
+def ends_at_waiting_point(api: Any, lane: str) -> bool:
+    """Whether the ego's `lane` leads to a waiting point inside the junction (its link goes on
+    through a further junction lane): before a turn's waiting point, not past it."""
+    return any(str(link[4]).startswith(":") for link in api.lane.getLinks(lane))
 
 
 @pytest.fixture(scope="module")
@@ -304,7 +311,7 @@ def test_a_left_turn_past_its_waiting_point_clears_the_junction_when_its_light_t
     switched, past = False, []
     while not (obs.terminated or obs.truncated):
         lane = api.vehicle.getLaneID("ego")
-        waits_ahead = any(str(link[4]).startswith(":") for link in api.lane.getLinks(lane))
+        waits_ahead = ends_at_waiting_point(api, lane)
         if lane.startswith(":j") and not waits_ahead:  # past the waiting point
             if switched:
                 assert obs.road is not None
@@ -334,7 +341,7 @@ def test_a_left_turn_that_overshot_its_waiting_point_at_a_crawl_still_waits_ther
     switched, lines = False, []
     while not (obs.terminated or obs.truncated):
         lane = api.vehicle.getLaneID("ego")
-        waits_ahead = any(str(link[4]).startswith(":") for link in api.lane.getLinks(lane))
+        waits_ahead = ends_at_waiting_point(api, lane)
         there = "oncoming" in api.vehicle.getIDList()
         if not switched and there:
             api.vehicle.setSpeed("oncoming", 0.0)  # held at its red line
@@ -376,7 +383,7 @@ def test_a_left_turn_waits_at_its_waiting_point_when_it_cannot_clear_before_its_
     lines, switched = [], False
     while not (obs.terminated or obs.truncated):
         lane = api.vehicle.getLaneID("ego")
-        waits_ahead = any(str(link[4]).startswith(":") for link in api.lane.getLinks(lane))
+        waits_ahead = ends_at_waiting_point(api, lane)
         if lane.startswith(":j") and waits_ahead:  # before the waiting point
             if not switched:
                 phases = [
